@@ -1,0 +1,184 @@
+"""Pydantic models of the devices' configuration: one model per driver ``type``.
+
+These are the single source of truth for driver settings (defaults, units, validation);
+:mod:`orchestrator.config` composes them into a station. Units: metres, seconds, radians.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class StrictModel(BaseModel):
+    """Base for every config model: unknown keys are errors (a typo must not pass silently)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Pose(StrictModel):
+    """A rigid transform parent <- child: translation (m) then roll-pitch-yaw (rad, extrinsic XYZ)."""
+
+    xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def matrix(self) -> np.ndarray:
+        """(4, 4) float64 homogeneous transform."""
+        from scipy.spatial.transform import Rotation
+
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("xyz", self.rpy).as_matrix()
+        T[:3, 3] = self.xyz
+        return T
+
+    @classmethod
+    def from_matrix(cls, T: np.ndarray) -> Pose:
+        """Inverse of :meth:`matrix`."""
+        from scipy.spatial.transform import Rotation
+
+        rpy = Rotation.from_matrix(np.asarray(T)[:3, :3]).as_euler("xyz")
+        return cls(xyz=tuple(float(v) for v in T[:3, 3]), rpy=tuple(float(v) for v in rpy))
+
+
+JointVector = Annotated[list[float], Field(min_length=7, max_length=7)]
+
+
+# ---------------------------------------------------------------- arms
+class _ArmBase(StrictModel):
+    base: Pose = Field(default_factory=Pose, description="robot base in the world frame (calibration)")
+    home: JointVector = Field(
+        default=[0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785],
+        description="joint configuration the arm starts from and returns to, rad",
+    )
+
+
+class FakeArmConfig(_ArmBase):
+    """A simulated Panda that follows commanded trajectories exactly, with optional lag and noise."""
+
+    type: Literal["fake"] = "fake"
+    lag: float = Field(0.0, ge=0.0, le=1.0, description="first-order tracking lag, s")
+    noise: float = Field(0.0, ge=0.0, le=0.01, description="joint measurement noise std, rad")
+    state_rate: float = Field(250.0, ge=100.0, le=2000.0, description="joint state rate, Hz")
+
+
+class FrankaArmConfig(_ArmBase):
+    """A Franka Emika Panda through franky-control (FCI)."""
+
+    type: Literal["franka"] = "franka"
+    host: str = Field(description="FCI IP address or hostname of the robot controller")
+    relative_dynamics: float = Field(0.5, gt=0.0, le=1.0, description="franky's dynamics factor")
+    recover_on_reflex: bool = True
+
+
+class URArmConfig(_ArmBase):
+    """A Universal Robots arm through ur-rtde (6 joints; the 7th program joint is ignored)."""
+
+    type: Literal["ur"] = "ur"
+    host: str = Field(description="robot controller IP address or hostname")
+    servo_rate: float = Field(500.0, ge=125.0, le=500.0, description="servoJ streaming rate, Hz")
+    lookahead_time: float = Field(0.1, ge=0.03, le=0.2, description="servoJ lookahead, s")
+    gain: float = Field(300.0, ge=100.0, le=2000.0, description="servoJ proportional gain")
+
+
+ArmConfig = Annotated[FakeArmConfig | FrankaArmConfig | URArmConfig, Field(discriminator="type")]
+
+
+# ---------------------------------------------------------------- grippers
+class FakeGripperConfig(StrictModel):
+    """A simulated parallel gripper that grasps whatever lies between its fingers."""
+
+    type: Literal["fake"] = "fake"
+    max_width: float = Field(0.08, gt=0.0, le=0.2, description="m")
+    speed: float = Field(0.1, gt=0.0, le=1.0, description="finger speed, m/s")
+
+
+class FrankaHandConfig(StrictModel):
+    """The Franka Hand of a Panda arm (through franky; uses the arm's host)."""
+
+    type: Literal["franka_hand"] = "franka_hand"
+    speed: float = Field(0.05, gt=0.0, le=0.2, description="m/s")
+    force: float = Field(20.0, gt=0.0, le=70.0, description="grasp force, N")
+
+
+class SerialGripperConfig(StrictModel):
+    """A Robotiq 2F-style gripper speaking Modbus RTU over a serial port."""
+
+    type: Literal["serial"] = "serial"
+    port: str = Field(description="serial device, e.g. /dev/ttyUSB0")
+    baudrate: int = 115200
+    slave_id: int = Field(9, ge=1, le=247)
+    timeout: float = Field(0.2, gt=0.0, le=5.0, description="per-request timeout, s")
+    retries: int = Field(3, ge=0, le=10)
+    stroke: float = Field(0.085, gt=0.0, le=0.2, description="full opening, m")
+
+
+GripperConfig = Annotated[
+    FakeGripperConfig | FrankaHandConfig | SerialGripperConfig, Field(discriminator="type")
+]
+
+
+# ---------------------------------------------------------------- cameras
+class _CameraBase(StrictModel):
+    id: str = Field("cam0", pattern=r"^[A-Za-z0-9_\-]+$", description="used in zenoh keys and channels")
+    width: int = Field(1280, ge=64, le=4096)
+    height: int = Field(720, ge=48, le=4096)
+    fps: float = Field(30.0, gt=0.0, le=120.0)
+    pose: Pose = Field(default_factory=Pose, description="camera optical frame in the world (hand-eye)")
+
+
+class FakeCameraConfig(_CameraBase):
+    """A camera that renders the simulated scene with a realistic depth error model."""
+
+    type: Literal["fake"] = "fake"
+    hfov_deg: float = Field(69.0, gt=10.0, lt=170.0, description="horizontal field of view, degrees")
+    depth_noise: float = Field(0.0015, ge=0.0, le=0.05, description="depth noise std at 1 m, m (grows ~z^2)")
+    edge_dropout: float = Field(0.5, ge=0.0, le=1.0, description="probability a depth-edge pixel is lost")
+    flying_pixels: float = Field(0.001, ge=0.0, le=0.05, description="fraction of pixels that fly")
+    clutter: int = Field(6, ge=0, le=50, description="number of background boxes")
+    seed: int = 0
+
+
+class RealSenseCameraConfig(_CameraBase):
+    """An Intel RealSense D4xx through pyrealsense2 (depth aligned to colour)."""
+
+    type: Literal["realsense"] = "realsense"
+    serial: str | None = Field(None, description="device serial; first device when omitted")
+    laser_power: float | None = Field(None, ge=0.0, le=360.0, description="mW; device default when omitted")
+
+
+class OakCameraConfig(_CameraBase):
+    """A Luxonis OAK-D through depthai (stereo depth aligned to the colour camera)."""
+
+    type: Literal["oak"] = "oak"
+    device_id: str | None = Field(None, description="MxId / device name; first device when omitted")
+
+
+class ReplayCameraConfig(_CameraBase):
+    """Frames played back from an episode MCAP file or a folder in the paper's layout."""
+
+    type: Literal["replay"] = "replay"
+    path: str = Field(description="episode .mcap, folder of episodes, or folder with rgbd.npz")
+    loop: bool = False
+
+
+CameraConfig = Annotated[
+    FakeCameraConfig | RealSenseCameraConfig | OakCameraConfig | ReplayCameraConfig,
+    Field(discriminator="type"),
+]
+
+
+# ---------------------------------------------------------------- simulated object (mock mode)
+class SimObjectConfig(StrictModel):
+    """The deformable object the simulator builds, holds in the fake grippers and renders."""
+
+    kind: Literal["rope", "branched_rope", "cloth"] = "rope"
+    length: float = Field(0.7, gt=0.05, le=3.0, description="rope / trunk length, or cloth width, m")
+    width: float = Field(0.35, gt=0.05, le=2.0, description="cloth height (cloth only), m")
+    branch_length: float = Field(0.25, gt=0.02, le=1.5, description="side branch length (branched rope), m")
+    radius: float = Field(0.008, gt=0.001, le=0.05, description="rope radius or cloth half thickness, m")
+    spacing: float = Field(0.02, gt=0.002, le=0.1, description="particle spacing of the simulation, m")
+    bending: float = Field(0.05, ge=0.0, le=1.0, description="bending stiffness, 0 = limp")
+    color: tuple[int, int, int] = Field((205, 70, 40), description="RGB")
+    seed: int = 0

@@ -1,0 +1,143 @@
+"""Plain data types exchanged between drivers, the orchestrator and the tracker.
+
+Units are SI: metres, seconds, radians. Images are row-major ``(H, W, ...)`` arrays.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """Pinhole intrinsics of the depth-aligned colour image (no distortion: frames are rectified)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    @property
+    def K(self) -> np.ndarray:  # noqa: N802 - the conventional name
+        """(3, 3) float64 camera matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @classmethod
+    def from_fov(cls, width: int, height: int, hfov_deg: float) -> CameraIntrinsics:
+        """Square-pixel intrinsics with the principal point at the image centre."""
+        f = 0.5 * width / np.tan(np.deg2rad(hfov_deg) / 2.0)
+        return cls(width, height, float(f), float(f), (width - 1) / 2.0, (height - 1) / 2.0)
+
+    def scaled(self, width: int, height: int) -> CameraIntrinsics:
+        """The same optics at another resolution."""
+        sx, sy = width / self.width, height / self.height
+        return CameraIntrinsics(width, height, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy)
+
+
+@dataclass(frozen=True)
+class JointState:
+    """One arm's joint state.
+
+    q, dq: (7,) float64, rad and rad/s. stamp: host clock, s.
+    """
+
+    stamp: float
+    q: np.ndarray
+    dq: np.ndarray
+
+
+@dataclass(frozen=True)
+class GripperState:
+    """Gripper opening width (m), whether it holds something, host stamp (s)."""
+
+    stamp: float
+    width: float
+    grasped: bool
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """What the simulator knows about a frame (mock mode only).
+
+    keypoints: (N, 3) float64, metres, world frame: the object's reference keypoints.
+    edges: (E, 2) int64 topology of those keypoints.
+    centreline: (M, 3) float64 dense samples of the object's centreline (1D) or mid-surface (2D).
+    radius: tube radius (1D) or half thickness (2D), m.
+    anchors: (A,) int64 indices into keypoints of ends / junctions / corners.
+    """
+
+    keypoints: np.ndarray
+    edges: np.ndarray
+    centreline: np.ndarray
+    radius: float
+    anchors: np.ndarray
+    category: str
+
+
+@dataclass(frozen=True)
+class RGBDFrame:
+    """One synchronised colour + depth capture, depth aligned to colour.
+
+    color: (H, W, 3) uint8, RGB. depth: (H, W) uint16, ``depth * depth_scale`` metres, 0 = no data.
+    device_stamp / host_stamp: s (device clock / host clock at arrival). frame_number: device counter.
+    """
+
+    color: np.ndarray
+    depth: np.ndarray
+    depth_scale: float
+    intrinsics: CameraIntrinsics
+    device_stamp: float
+    host_stamp: float
+    frame_number: int
+    ground_truth: GroundTruth | None = field(default=None, compare=False)
+
+    def depth_m(self) -> np.ndarray:
+        """(H, W) float32 depth in metres, 0 where missing."""
+        return self.depth.astype(np.float32) * np.float32(self.depth_scale)
+
+
+@dataclass(frozen=True)
+class JointMotion:
+    """A timed joint-space motion for one arm, rest to rest at every segment end.
+
+    Every driver gets the same description and uses what suits it: franky replays the
+    segment targets with their durations, ur-rtde streams the samples with servoJ, the fake
+    arm interpolates the samples.
+
+    times: (K,) float64, s from motion start, uniform step ``dt``.
+    q, dq: (K, 7) float64, rad and rad/s.
+    targets: (S, 7) float64, rad, the end of each segment. durations: (S,) float64, s.
+    limit_scale: (S,) float64, the fraction of the arm's dynamic limits each segment uses.
+    """
+
+    times: np.ndarray
+    q: np.ndarray
+    dq: np.ndarray
+    targets: np.ndarray
+    durations: np.ndarray
+    limit_scale: np.ndarray
+
+    @property
+    def duration(self) -> float:
+        """Total duration, s."""
+        return float(self.times[-1]) if len(self.times) else 0.0
+
+    @property
+    def dt(self) -> float:
+        """Sample step, s."""
+        return float(self.times[1] - self.times[0]) if len(self.times) > 1 else 0.0
+
+    def sample(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Linearly interpolated (q, dq), each (7,), at time ``t`` s from motion start (clamped)."""
+        if len(self.times) == 1 or t <= 0.0:
+            return self.q[0].copy(), (self.dq[0].copy() if t > 0.0 else np.zeros(self.q.shape[1]))
+        if t >= self.times[-1]:
+            return self.q[-1].copy(), np.zeros(self.q.shape[1])
+        x = t / self.dt
+        i = min(int(x), len(self.times) - 2)
+        a = x - i
+        return (1 - a) * self.q[i] + a * self.q[i + 1], (1 - a) * self.dq[i] + a * self.dq[i + 1]

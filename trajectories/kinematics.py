@@ -1,0 +1,137 @@
+"""Panda kinematics with pinocchio: TCP poses, the arm input u_t and link meshes in the world.
+
+The model and meshes come from ``example-robot-data`` (loaded once per process). Joint
+vectors are (7,) rad; the two fingers are set from the gripper opening. Poses are (4, 4)
+float64 homogeneous transforms, world <- frame, metres.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+
+TCP_FRAME = "panda_hand_tcp"
+N_JOINTS = 7
+
+
+@dataclass(frozen=True)
+class LinkMesh:
+    """A rigid piece of the arm: triangles in the frame of ``joint_index`` (pinocchio joint)."""
+
+    name: str
+    joint_index: int
+    placement: np.ndarray  # (4, 4) joint <- mesh
+    vertices: np.ndarray  # (V, 3) float64, mesh frame, m
+    triangles: np.ndarray  # (F, 3) int32
+
+
+@functools.lru_cache(maxsize=1)
+def _panda() -> tuple:
+    """(model, collision_model) of the Panda with hand, loaded once."""
+    from example_robot_data import load
+
+    robot = load("panda")
+    return robot.model, robot.collision_model
+
+
+def _box_mesh(half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(8, 3) vertices and (12, 3) triangles of an axis-aligned box with half extents ``half``."""
+    s = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
+    tri = np.array(
+        [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+         [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]],
+        dtype=np.int32,
+    )
+    return s * half, tri
+
+
+@functools.lru_cache(maxsize=1)
+def panda_link_meshes() -> tuple[LinkMesh, ...]:
+    """The Panda's collision geometry (≈2.3k triangles) as plain arrays, loaded once."""
+    import open3d as o3d
+
+    _, cmodel = _panda()
+    out = []
+    for g in cmodel.geometryObjects:
+        if g.meshPath.endswith((".stl", ".STL", ".obj", ".dae")):
+            m = o3d.io.read_triangle_mesh(g.meshPath)
+            v = np.asarray(m.vertices, dtype=np.float64) * np.asarray(g.meshScale)
+            f = np.asarray(m.triangles, dtype=np.int32)
+        else:  # finger pads are boxes
+            v, f = _box_mesh(np.asarray(g.geometry.halfSide, dtype=np.float64))
+        out.append(LinkMesh(g.name, int(g.parentJoint), g.placement.homogeneous.copy(), v, f))
+    return tuple(out)
+
+
+def joint_limits() -> dict[str, np.ndarray]:
+    """The Panda's published joint limits, each (7,): position lower/upper (rad), velocity (rad/s),
+    acceleration (rad/s^2) and jerk (rad/s^3) from Franka's datasheet."""
+    model, _ = _panda()
+    return {
+        "lower": model.lowerPositionLimit[:N_JOINTS].copy(),
+        "upper": model.upperPositionLimit[:N_JOINTS].copy(),
+        "velocity": model.velocityLimit[:N_JOINTS].copy(),
+        "acceleration": np.array([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0]),
+        "jerk": np.array([7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10000.0, 10000.0]),
+    }
+
+
+class PandaKinematics:
+    """Forward kinematics of one Panda whose base sits at ``T_world_base`` (4, 4)."""
+
+    def __init__(self, T_world_base: np.ndarray | None = None) -> None:
+        import pinocchio as pin
+
+        self._pin = pin
+        self.model, _ = _panda()
+        self.data = self.model.createData()
+        self.T_world_base = np.eye(4) if T_world_base is None else np.asarray(T_world_base, dtype=np.float64)
+        self.tcp_id = self.model.getFrameId(TCP_FRAME)
+
+    def _q_full(self, q: np.ndarray, finger_width: float) -> np.ndarray:
+        q = np.asarray(q, dtype=np.float64)
+        if q.shape != (N_JOINTS,):
+            raise ValueError(f"expected a (7,) joint vector, got shape {q.shape}")
+        half = float(np.clip(finger_width / 2.0, 0.0, 0.04))
+        return np.concatenate([q, [half, half]])
+
+    def tcp_pose(self, q: np.ndarray) -> np.ndarray:
+        """(4, 4) world <- TCP (between the fingertips) for joints ``q`` (7,)."""
+        pin = self._pin
+        pin.forwardKinematics(self.model, self.data, self._q_full(q, 0.0))
+        M = pin.updateFramePlacement(self.model, self.data, self.tcp_id)
+        return self.T_world_base @ M.homogeneous
+
+    def joint_poses(self, q: np.ndarray, finger_width: float = 0.08) -> np.ndarray:
+        """(n_joints+1, 4, 4) world <- joint frame for every pinocchio joint (index 0 = base)."""
+        pin = self._pin
+        pin.forwardKinematics(self.model, self.data, self._q_full(q, finger_width))
+        return np.stack([self.T_world_base @ M.homogeneous for M in self.data.oMi])
+
+    def world_meshes(self, q: np.ndarray, finger_width: float = 0.08) -> tuple[np.ndarray, np.ndarray]:
+        """The whole arm as one triangle soup in the world frame.
+
+        Returns vertices (V, 3) float64 m and triangles (F, 3) int32, ≈2.3k triangles.
+        """
+        poses = self.joint_poses(q, finger_width)
+        verts, tris, offset = [], [], 0
+        for link in panda_link_meshes():
+            T = poses[link.joint_index] @ link.placement
+            verts.append(link.vertices @ T[:3, :3].T + T[:3, 3])
+            tris.append(link.triangles + offset)
+            offset += len(link.vertices)
+        return np.concatenate(verts), np.concatenate(tris)
+
+
+def pose_to_input(T: np.ndarray) -> np.ndarray:
+    """(6,) [x, y, z, rx, ry, rz]: position (m) and rotation vector (rad, axis * angle) of a pose."""
+    from scipy.spatial.transform import Rotation
+
+    return np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()])
+
+
+def arm_inputs(left: PandaKinematics, right: PandaKinematics, q_left: np.ndarray, q_right: np.ndarray) -> np.ndarray:
+    """The paper's control input u_t: (12,) = left TCP [p, rotvec] then right TCP [p, rotvec], world frame."""
+    return np.concatenate([pose_to_input(left.tcp_pose(q_left)), pose_to_input(right.tcp_pose(q_right))])
