@@ -70,6 +70,12 @@ class FrankaArmConfig(_ArmBase):
     host: str = Field(description="FCI IP address or hostname of the robot controller")
     relative_dynamics: float = Field(0.5, gt=0.0, le=1.0, description="franky's dynamics factor")
     recover_on_reflex: bool = True
+    segment_dynamics: bool = Field(
+        True, description="apply each segment's limit_scale as its waypoint acceleration/jerk factor"
+    )
+    start_tolerance: float = Field(
+        0.05, gt=0.0, le=0.5, description="max joint distance between motion start and current state, rad"
+    )
 
 
 class URArmConfig(_ArmBase):
@@ -80,6 +86,9 @@ class URArmConfig(_ArmBase):
     servo_rate: float = Field(500.0, ge=125.0, le=500.0, description="servoJ streaming rate, Hz")
     lookahead_time: float = Field(0.1, ge=0.03, le=0.2, description="servoJ lookahead, s")
     gain: float = Field(300.0, ge=100.0, le=2000.0, description="servoJ proportional gain")
+    start_tolerance: float = Field(
+        0.05, gt=0.0, le=0.5, description="max joint distance between motion start and current state, rad"
+    )
 
 
 ArmConfig = Annotated[FakeArmConfig | FrankaArmConfig | URArmConfig, Field(discriminator="type")]
@@ -100,6 +109,8 @@ class FrankaHandConfig(StrictModel):
     type: Literal["franka_hand"] = "franka_hand"
     speed: float = Field(0.05, gt=0.0, le=0.2, description="m/s")
     force: float = Field(20.0, gt=0.0, le=70.0, description="grasp force, N")
+    host: str | None = Field(None, description="FCI host; the arm's host (passed by the station) when omitted")
+    home_on_connect: bool = Field(True, description="run the finger homing on connect (calibrates the width)")
 
 
 class SerialGripperConfig(StrictModel):
@@ -112,6 +123,13 @@ class SerialGripperConfig(StrictModel):
     timeout: float = Field(0.2, gt=0.0, le=5.0, description="per-request timeout, s")
     retries: int = Field(3, ge=0, le=10)
     stroke: float = Field(0.085, gt=0.0, le=0.2, description="full opening, m")
+    speed: float = Field(0.1, gt=0.0, le=0.5, description="default finger speed, m/s")
+    force: float = Field(40.0, gt=0.0, le=500.0, description="default grasp force, N")
+    min_speed: float = Field(0.02, gt=0.0, le=0.5, description="finger speed at register 0, m/s")
+    max_speed: float = Field(0.15, gt=0.0, le=0.5, description="finger speed at register 255, m/s")
+    min_force: float = Field(20.0, ge=0.0, le=500.0, description="grip force at register 0, N")
+    max_force: float = Field(235.0, gt=0.0, le=500.0, description="grip force at register 255, N")
+    activation_timeout: float = Field(5.0, gt=0.0, le=30.0, description="wait for activation, s")
 
 
 GripperConfig = Annotated[
@@ -146,6 +164,7 @@ class RealSenseCameraConfig(_CameraBase):
     type: Literal["realsense"] = "realsense"
     serial: str | None = Field(None, description="device serial; first device when omitted")
     laser_power: float | None = Field(None, ge=0.0, le=360.0, description="mW; device default when omitted")
+    start_timeout: float = Field(5.0, gt=0.0, le=60.0, description="wait for the first frame on connect, s")
 
 
 class OakCameraConfig(_CameraBase):
@@ -153,6 +172,7 @@ class OakCameraConfig(_CameraBase):
 
     type: Literal["oak"] = "oak"
     device_id: str | None = Field(None, description="MxId / device name; first device when omitted")
+    start_timeout: float = Field(10.0, gt=0.0, le=60.0, description="wait for the first frame on connect, s")
 
 
 class ReplayCameraConfig(_CameraBase):

@@ -1,0 +1,260 @@
+"""Configuration: pydantic models for the station, run plan, tracking, bus and output.
+
+These models are the single source of truth: defaults, units and validation live here.
+``load_config`` reads YAML and turns a validation failure into a ``ConfigError`` that names
+the file, the line, the field path, the bad value and what was expected.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import Field, ValidationError, field_validator, model_validator
+
+from drivers.config import ArmConfig, CameraConfig, GripperConfig, SimObjectConfig, StrictModel
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+DEFAULT_CONFIG = CONFIG_DIR / "mock.yaml"
+
+Speed = Literal["slow", "medium", "fast"]
+Category = Literal["dlo", "bdlo", "cloth"]
+
+
+class ArmSlot(StrictModel):
+    """One arm of the station and the gripper mounted on it."""
+
+    arm: ArmConfig
+    gripper: GripperConfig
+
+
+class StationConfig(StrictModel):
+    """The hardware: two arms with grippers and one RGB-D camera, with their calibration."""
+
+    name: str = Field("station0", pattern=r"^[A-Za-z0-9_\-]+$", description="used in zenoh keys")
+    left: ArmSlot
+    right: ArmSlot
+    camera: CameraConfig
+
+    @property
+    def simulated(self) -> bool:
+        """True when any device is simulated (then a simulated object is needed)."""
+        devices = (self.left.arm, self.right.arm, self.left.gripper, self.right.gripper, self.camera)
+        return any(d.type == "fake" for d in devices)
+
+
+class ObjectConfig(StrictModel):
+    """A deformable object of the plan and the programs run with it."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
+    category: Category
+    programs: list[str] = Field(min_length=1, description="library names or program file paths")
+    n_keypoints: int | None = Field(
+        None, ge=3, le=400, description="keypoints to track; default 20 (dlo), 25 (bdlo), 36 (cloth 6x6)"
+    )
+    sim: SimObjectConfig | None = Field(None, description="how the simulator builds it (mock mode)")
+
+    @model_validator(mode="after")
+    def _sim_matches_category(self) -> ObjectConfig:
+        if self.sim is not None:
+            expected = {"dlo": "rope", "bdlo": "branched_rope", "cloth": "cloth"}[self.category]
+            if self.sim.kind != expected:
+                raise ValueError(
+                    f"sim.kind {self.sim.kind!r} does not match category {self.category!r} "
+                    f"(expected sim.kind {expected!r})"
+                )
+        return self
+
+
+class PlanConfig(StrictModel):
+    """What to collect: objects × their programs × speeds × repeats, cut into fixed-length episodes."""
+
+    objects: list[ObjectConfig] = Field(min_length=1)
+    speeds: list[Speed] = Field(default=["slow", "medium", "fast"], min_length=1)
+    repeats: int = Field(1, ge=1, le=10000)
+    fast_duration: float = Field(1.25, ge=1.0, le=1.5, description="seconds per waypoint at 'fast'")
+    episode_seconds: float = Field(5.0, gt=0.5, le=600.0, description="length of one episode file, s")
+    settle_seconds: float = Field(0.5, ge=0.0, le=10.0, description="rest recorded before each program, s")
+
+    @field_validator("objects")
+    @classmethod
+    def _unique_names(cls, v: list[ObjectConfig]) -> list[ObjectConfig]:
+        names = [o.name for o in v]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"object names must be unique; repeated: {dup}")
+        return v
+
+
+class TrackingConfig(StrictModel):
+    """The tracking worker and the TrackDeform3D parameters that a lab may tune."""
+
+    enabled: bool = True
+    voxel_size: float = Field(0.004, gt=0.0005, le=0.05, description="down-sampling voxel, m")
+    solver_iterations: int = Field(30, ge=1, le=1000)
+    use_anchors: bool = Field(True, description="ablation: anchor constraints")
+    use_edge_projection: bool = Field(True, description="ablation: edge-length projection")
+    use_cloud_projection: bool = Field(True, description="ablation: projection onto the cloud")
+    live_window: int = Field(3, ge=1, le=31, description="causal moving-average window, frames")
+    final_window: int = Field(5, ge=1, le=31, description="symmetric moving-average window, frames (odd)")
+
+    @field_validator("final_window")
+    @classmethod
+    def _odd(cls, v: int) -> int:
+        if v % 2 == 0:
+            raise ValueError(f"must be odd so the window is symmetric, got {v}")
+        return v
+
+
+class BusConfig(StrictModel):
+    """The zenoh session: peer mode on explicit endpoints, multicast scouting off by default."""
+
+    enabled: bool = True
+    prefix: str = Field("trackdeform", pattern=r"^[A-Za-z0-9_\-/]+$")
+    mode: Literal["peer", "client"] = "peer"
+    listen: list[str] = Field(default=["tcp/127.0.0.1:7447"], description="zenoh endpoints to listen on")
+    connect: list[str] = Field(default=[], description="zenoh endpoints (peers or a zenohd router)")
+    multicast_scouting: bool = False
+
+    @field_validator("listen", "connect")
+    @classmethod
+    def _endpoints(cls, v: list[str]) -> list[str]:
+        for e in v:
+            proto, sep, rest = e.partition("/")
+            if not sep or proto not in ("tcp", "udp", "quic", "tls", "unixsock-stream", "ws") or not rest:
+                raise ValueError(f"{e!r} is not a zenoh endpoint like 'tcp/127.0.0.1:7447'")
+        return v
+
+    def key(self, station: str, *parts: str) -> str:
+        """A key expression ``<prefix>/<station>/<parts...>``."""
+        return "/".join([self.prefix.strip("/"), station, *parts])
+
+
+class OutputConfig(StrictModel):
+    """Where and how episodes are written."""
+
+    directory: Path = Field(Path("runs"), description="episodes go to <directory>/<session>/")
+    compression: Literal["zstd", "lz4", "none"] = "zstd"
+    min_free_gb: float = Field(2.0, ge=0.0, description="stop cleanly below this free disk space, GiB")
+
+
+class Config(StrictModel):
+    """Everything a collection session needs."""
+
+    station: StationConfig
+    plan: PlanConfig
+    tracking: TrackingConfig = Field(default_factory=TrackingConfig)
+    bus: BusConfig = Field(default_factory=BusConfig)
+    output: OutputConfig = Field(default_factory=OutputConfig)
+    clock: Literal["real", "sim"] = Field("real", description="'sim': simulated time (tests), fake devices only")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Config:
+        if self.station.simulated:
+            missing = [o.name for o in self.plan.objects if o.sim is None]
+            if missing:
+                raise ValueError(f"a simulated station needs plan.objects[*].sim; missing for {missing}")
+        elif self.clock == "sim":
+            raise ValueError("clock 'sim' needs a simulated station (devices of type 'fake')")
+        return self
+
+
+class ConfigError(ValueError):
+    """A config file that cannot be used; the message lists every problem with its location."""
+
+
+def _line_of(root: yaml.Node | None, loc: tuple[Any, ...]) -> int | None:
+    """1-based line of the YAML node at ``loc`` (or of its deepest existing parent)."""
+    node, line = root, None
+    for key in loc:
+        if node is None:
+            break
+        line = node.start_mark.line + 1
+        if isinstance(node, yaml.MappingNode):
+            node = next((v for k, v in node.value if k.value == str(key)), None)
+        elif isinstance(node, yaml.SequenceNode) and isinstance(key, int) and key < len(node.value):
+            node = node.value[key]
+        else:
+            node = None
+    if node is not None:
+        line = node.start_mark.line + 1
+    return line
+
+
+def _format_loc(loc: tuple[Any, ...]) -> str:
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out or "(top level)"
+
+
+def _clean_loc(data: Any, loc: tuple[Any, ...]) -> tuple[Any, ...]:
+    """``loc`` without the union tags pydantic inserts (``station.left.arm.fake.lag`` -> ``...arm.lag``)."""
+    out, node = [], data
+    for part in loc:
+        if isinstance(node, dict) and part not in node and node.get("type") == part:
+            continue  # discriminated-union tag, not a key of the file
+        if isinstance(part, str) and part.startswith("function-"):
+            continue
+        out.append(part)
+        if isinstance(node, dict):
+            node = node.get(part)
+        elif isinstance(node, list) and isinstance(part, int) and part < len(node):
+            node = node[part]
+        else:
+            node = None
+    return tuple(out)
+
+
+def format_validation_error(
+    err: ValidationError, source: str, root: yaml.Node | None = None, data: Any = None
+) -> str:
+    """One line per problem: ``file:line: field.path: message (got value)``."""
+    lines = []
+    for e in err.errors():
+        loc = _clean_loc(data, tuple(e["loc"]))
+        line = _line_of(root, loc) if root is not None else None
+        where = f"{source}:{line}" if line else source
+        got = e.get("input")
+        got_txt = "" if e["type"] == "missing" or isinstance(got, dict) else f" (got {got!r})"
+        lines.append(f"{where}: {_format_loc(loc)}: {e['msg']}{got_txt}")
+    return "\n".join(lines)
+
+
+def parse_config(data: Any, source: str = "<config>", root: yaml.Node | None = None) -> Config:
+    """Validate a plain dict into a :class:`Config`, raising ConfigError with located messages."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
+    try:
+        return Config.model_validate(data)
+    except ValidationError as err:
+        details = format_validation_error(err, source, root, data)
+        raise ConfigError(f"{source}: invalid configuration\n{details}") from None
+
+
+def load_config(path: str | Path, overrides: dict[str, Any] | None = None) -> Config:
+    """Read and validate a YAML config; ``overrides`` are dotted keys set after reading."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read config: {e.strerror}") from None
+    try:
+        root = yaml.compose(text)
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: not valid YAML: {e}") from None
+    if data is None:
+        raise ConfigError(f"{path}: the file is empty")
+    for dotted, value in (overrides or {}).items():
+        _set_dotted(data, dotted, value)
+    return parse_config(data, str(path), root)
+
+
+def _set_dotted(data: dict, dotted: str, value: Any) -> None:
+    node = data
+    parts = dotted.split(".")
+    for p in parts[:-1]:
+        node = node.setdefault(p, {})
+    node[parts[-1]] = value

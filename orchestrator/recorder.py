@@ -1,0 +1,350 @@
+"""Episode files: one MCAP per episode, written as ``*.mcap.active``, fsynced, renamed on close.
+
+Channels (Foxglove schemas where one fits, so a file opens in Foxglove):
+
+- ``/cam/<id>/color``  foxglove.RawImage rgb8;  ``/cam/<id>/depth``  foxglove.RawImage 16UC1 (mm)
+- ``/cam/<id>/calibration``  foxglove.CameraCalibration (frame ``cam``)
+- ``/cam/<id>/frame_info``  JSON {frame_number, device_stamp, host_stamp}
+- ``/arms/state``  JSON (see orchestrator.wire);  ``/tf``  foxglove.FrameTransforms (world -> cam, TCPs)
+- ``/keypoints``  JSON (trackdeform.Keypoints/1, exact arrays);  ``/keypoints/scene``  foxglove.SceneUpdate
+- ``/ground_truth/keypoints``  JSON (mock mode)
+
+and a metadata record ``episode`` whose values are JSON strings. Leftover ``.active`` files
+(after a crash or SIGKILL) are rewritten from their readable records by :func:`recover_active`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcap.writer import CompressionType, Writer
+
+from drivers.types import RGBDFrame
+
+log = logging.getLogger(__name__)
+
+ACTIVE_SUFFIX = ".mcap.active"
+_COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+
+def _ns(t: float) -> int:
+    return max(0, int(round(t * 1e9)))
+
+
+def _quat_xyzw(R: np.ndarray) -> tuple[float, float, float, float]:
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    return float(x), float(y), float(z), float(w)
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+class EpisodeWriter:
+    """Writes one episode file; call ``close()`` to finish it (``abort()`` leaves ``.active``)."""
+
+    def __init__(self, path: Path, camera_id: str, compression: str = "zstd") -> None:
+        from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+        from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+        from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+        from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+        from mcap_protobuf.schema import build_file_descriptor_set
+
+        self.path = Path(path)
+        self.active_path = self.path.with_name(self.path.name.removesuffix(".mcap") + ACTIVE_SUFFIX)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.path.exists():
+            raise FileExistsError(f"{self.path} exists already; refusing to overwrite a finished episode")
+        self._file = open(self.active_path, "wb")  # noqa: SIM115 - closed in close()/abort()
+        self._w = Writer(self._file, compression=_COMPRESSION[compression], chunk_size=4 << 20)
+        self._w.start(profile="", library="trackdeform3d")
+        self._channels: dict[str, int] = {}
+        self._seq: dict[str, int] = {}
+        self.camera_id = camera_id
+        self.n_frames = 0
+        self.first_frame: int | None = None
+        self.last_frame: int | None = None
+        self.closed = False
+
+        def proto(cls: Any) -> int:
+            fds = build_file_descriptor_set(cls)
+            return self._w.register_schema(cls.DESCRIPTOR.full_name, "protobuf", fds.SerializeToString())
+
+        def js(name: str, schema: dict[str, Any]) -> int:
+            return self._w.register_schema(name, "jsonschema", json.dumps(schema).encode())
+
+        raw, calib, tf, scene = proto(RawImage), proto(CameraCalibration), proto(FrameTransforms), proto(SceneUpdate)
+        obj = {"type": "object"}
+        cam = f"/cam/{camera_id}"
+        for topic, sid, enc in [
+            (f"{cam}/color", raw, "protobuf"),
+            (f"{cam}/depth", raw, "protobuf"),
+            (f"{cam}/calibration", calib, "protobuf"),
+            (f"{cam}/frame_info", js("trackdeform.FrameInfo", obj), "json"),
+            ("/arms/state", js("trackdeform.ArmState", obj), "json"),
+            ("/tf", tf, "protobuf"),
+            ("/keypoints", js("trackdeform.Keypoints", obj), "json"),
+            ("/keypoints/scene", scene, "protobuf"),
+            ("/ground_truth/keypoints", js("trackdeform.GroundTruth", obj), "json"),
+        ]:
+            self._channels[topic] = self._w.register_channel(topic, enc, sid)
+            self._seq[topic] = 0
+        self._RawImage, self._Calib, self._TF, self._Scene = RawImage, CameraCalibration, FrameTransforms, SceneUpdate
+
+    # ------------------------------------------------------------------ writing
+    def _add(self, topic: str, data: bytes, t: float, publish: float | None = None) -> None:
+        seq = self._seq[topic]
+        self._seq[topic] = seq + 1
+        self._w.add_message(self._channels[topic], _ns(t), data, _ns(t if publish is None else publish), seq)
+
+    def _add_json(self, topic: str, obj: dict[str, Any], t: float) -> None:
+        self._add(topic, json.dumps(obj, separators=(",", ":")).encode(), t)
+
+    def write_frame(self, frame: RGBDFrame, T_world_cam: np.ndarray) -> None:
+        """Colour, depth, frame info (+ calibration and camera pose on the first frame, ground truth if any)."""
+        from google.protobuf.timestamp_pb2 import Timestamp
+
+        t = frame.device_stamp
+        ts = Timestamp()
+        ts.FromNanoseconds(_ns(t))
+        h, w = frame.depth.shape
+        cam = f"/cam/{self.camera_id}"
+        if self.n_frames == 0:
+            self.write_calibration(frame, T_world_cam)
+        color = self._RawImage(
+            timestamp=ts, frame_id="cam", width=w, height=h, encoding="rgb8", step=w * 3,
+            data=np.ascontiguousarray(frame.color).tobytes(),
+        )
+        self._add(f"{cam}/color", color.SerializeToString(), t, frame.host_stamp)
+        depth_mm = frame.depth if abs(frame.depth_scale - 0.001) < 1e-9 else np.clip(
+            np.round(frame.depth.astype(np.float64) * frame.depth_scale * 1000.0), 0, 65535
+        ).astype(np.uint16)
+        depth = self._RawImage(
+            timestamp=ts, frame_id="cam", width=w, height=h, encoding="16UC1", step=w * 2,
+            data=np.ascontiguousarray(depth_mm, dtype="<u2").tobytes(),
+        )
+        self._add(f"{cam}/depth", depth.SerializeToString(), t, frame.host_stamp)
+        self._add_json(
+            f"{cam}/frame_info",
+            {"frame_number": frame.frame_number, "device_stamp": frame.device_stamp, "host_stamp": frame.host_stamp},
+            t,
+        )
+        if frame.ground_truth is not None:
+            gt = frame.ground_truth
+            self._add_json(
+                "/ground_truth/keypoints",
+                {"frame_number": frame.frame_number, "keypoints": np.round(gt.keypoints, 6).tolist(),
+                 "edges": gt.edges.tolist(), "anchors": gt.anchors.tolist(), "radius": gt.radius,
+                 "category": gt.category},
+                t,
+            )
+        self.n_frames += 1
+        if self.first_frame is None:
+            self.first_frame = frame.frame_number
+        self.last_frame = frame.frame_number
+
+    def write_calibration(self, frame: RGBDFrame, T_world_cam: np.ndarray) -> None:
+        """Camera intrinsics (foxglove.CameraCalibration) and the world -> cam transform."""
+        from google.protobuf.timestamp_pb2 import Timestamp
+
+        ts = Timestamp()
+        ts.FromNanoseconds(_ns(frame.device_stamp))
+        k = frame.intrinsics
+        K = k.K
+        P = np.hstack([K, np.zeros((3, 1))])
+        msg = self._Calib(
+            timestamp=ts, frame_id="cam", width=k.width, height=k.height, distortion_model="plumb_bob",
+            D=[0.0] * 5, K=K.ravel().tolist(), R=np.eye(3).ravel().tolist(), P=P.ravel().tolist(),
+        )
+        self._add(f"/cam/{self.camera_id}/calibration", msg.SerializeToString(), frame.device_stamp)
+        self.write_transforms(frame.device_stamp, {"cam": T_world_cam})
+
+    def write_transforms(self, t: float, poses: dict[str, np.ndarray]) -> None:
+        """foxglove.FrameTransforms world -> each named frame."""
+        from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+        from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
+        from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+        from google.protobuf.timestamp_pb2 import Timestamp
+
+        ts = Timestamp()
+        ts.FromNanoseconds(_ns(t))
+        msg = self._TF()
+        for child, T in poses.items():
+            x, y, z, w = _quat_xyzw(T[:3, :3])
+            msg.transforms.append(
+                FrameTransform(
+                    timestamp=ts, parent_frame_id="world", child_frame_id=child,
+                    translation=Vector3(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
+                    rotation=Quaternion(x=x, y=y, z=z, w=w),
+                )
+            )
+        self._add("/tf", msg.SerializeToString(), t)
+
+    def write_arm_state(self, state: dict[str, Any], tcp_poses: dict[str, np.ndarray] | None = None) -> None:
+        """One sample of both arms (the ``arms/state`` JSON) and, optionally, their TCP frames."""
+        self._add_json("/arms/state", state, state["stamp"])
+        if tcp_poses:
+            self.write_transforms(state["stamp"], tcp_poses)
+
+    def write_keypoints(self, msg: dict[str, Any], t: float) -> None:
+        """Tracked keypoints (exact JSON) and a SceneUpdate with spheres and edge lines."""
+        self._add_json("/keypoints", msg, t)
+        self._add("/keypoints/scene", _scene_update(self._Scene, msg, t).SerializeToString(), t)
+
+    # ------------------------------------------------------------------ closing
+    def close(self, metadata: dict[str, Any]) -> Path:
+        """Write metadata, finish, fsync and rename to the final name; returns it."""
+        if self.closed:
+            return self.path
+        meta = dict(metadata)
+        meta.update(n_frames=self.n_frames, first_frame=self.first_frame, last_frame=self.last_frame)
+        self._w.add_metadata("episode", {k: json.dumps(v) for k, v in meta.items()})
+        self._w.finish()
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self._file.close()
+        os.replace(self.active_path, self.path)
+        _fsync_dir(self.path.parent)
+        self.closed = True
+        return self.path
+
+    def abort(self) -> None:
+        """Stop writing without finishing; the ``.active`` file stays for :func:`recover_active`."""
+        if not self.closed:
+            try:
+                self._file.flush()
+                os.fsync(self._file.fileno())
+            finally:
+                self._file.close()
+                self.closed = True
+
+
+def _scene_update(SceneUpdate: Any, msg: dict[str, Any], t: float) -> Any:
+    """Keypoints as spheres and edges as a line list, in the world frame."""
+    from foxglove_schemas_protobuf.Color_pb2 import Color
+    from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
+    from foxglove_schemas_protobuf.Point3_pb2 import Point3
+    from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
+    from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
+    from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+    from google.protobuf.timestamp_pb2 import Timestamp
+
+    ts = Timestamp()
+    ts.FromNanoseconds(_ns(t))
+    kp = msg.get("keypoints", [])
+    ent = SceneEntity(timestamp=ts, frame_id="world", id="keypoints")
+    for p in kp:
+        ent.spheres.append(
+            SpherePrimitive(size=Vector3(x=0.012, y=0.012, z=0.012), color=Color(r=1.0, g=0.8, b=0.1, a=1.0))
+        )
+        ent.spheres[-1].pose.position.x, ent.spheres[-1].pose.position.y, ent.spheres[-1].pose.position.z = p
+        ent.spheres[-1].pose.orientation.w = 1.0
+    line = LinePrimitive(type=LinePrimitive.LINE_LIST, thickness=3.0, scale_invariant=True,
+                         color=Color(r=0.1, g=0.9, b=1.0, a=1.0))
+    line.pose.orientation.w = 1.0
+    for i, j in msg.get("edges", []):
+        line.points.append(Point3(x=kp[i][0], y=kp[i][1], z=kp[i][2]))
+        line.points.append(Point3(x=kp[j][0], y=kp[j][1], z=kp[j][2]))
+    ent.lines.append(line)
+    return SceneUpdate(entities=[ent])
+
+
+# ---------------------------------------------------------------------- reading and recovery
+def read_episode_metadata(path: Path) -> dict[str, Any]:
+    """The ``episode`` metadata record of a finished file, values decoded from JSON."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        for m in make_reader(f).iter_metadata():
+            if m.name == "episode":
+                return {k: json.loads(v) for k, v in m.metadata.items()}
+    raise ValueError(f"{path}: no 'episode' metadata record")
+
+
+def recover_active(directory: Path, quarantine: str = "quarantine") -> list[tuple[Path, str]]:
+    """Turn leftover ``*.mcap.active`` files into valid ``*.mcap`` files, or quarantine them.
+
+    Every record the stream reader can still read (up to the last complete chunk) is rewritten
+    into a new file with ``recovered: true`` in its metadata; a file with no readable message is
+    moved to ``<directory>/<quarantine>/``. Returns ``(path, outcome)`` pairs.
+    """
+    from mcap.records import Channel, Message, Metadata, Schema
+    from mcap.stream_reader import StreamReader
+
+    results = []
+    for active in sorted(Path(directory).glob(f"*{ACTIVE_SUFFIX}")):
+        final = active.with_name(active.name.removesuffix(ACTIVE_SUFFIX) + ".mcap")
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
+        messages: list[Message] = []
+        metadata: list[Metadata] = []
+        error = ""
+        try:
+            with open(active, "rb") as f:
+                for rec in StreamReader(f, skip_magic=False).records:
+                    if isinstance(rec, Schema):
+                        schemas[rec.id] = rec
+                    elif isinstance(rec, Channel):
+                        channels[rec.id] = rec
+                    elif isinstance(rec, Message):
+                        messages.append(rec)
+                    elif isinstance(rec, Metadata):
+                        metadata.append(rec)
+        except Exception as e:  # truncated tail: keep what was read
+            error = f"{type(e).__name__}: {e}"
+        messages = [m for m in messages if m.channel_id in channels]
+        if not messages or final.exists():
+            qdir = Path(directory) / quarantine
+            qdir.mkdir(exist_ok=True)
+            os.replace(active, qdir / active.name)
+            reason = "a finished file of that name exists" if final.exists() else "no readable message"
+            log.warning("quarantined %s (%s)", active, reason)
+            results.append((qdir / active.name, f"quarantined: {reason}"))
+            continue
+        tmp = final.with_name(final.name + ".recovering")
+        with open(tmp, "wb") as out:
+            w = Writer(out, compression=CompressionType.ZSTD)
+            w.start(profile="", library="trackdeform3d (recovered)")
+            sid_map = {sid: w.register_schema(s.name, s.encoding, s.data) for sid, s in schemas.items()}
+            cid_map = {
+                cid: w.register_channel(c.topic, c.message_encoding, sid_map.get(c.schema_id, 0), c.metadata)
+                for cid, c in channels.items()
+            }
+            for m in messages:
+                w.add_message(cid_map[m.channel_id], m.log_time, m.data, m.publish_time, m.sequence)
+            meta: dict[str, str] = {}
+            for md in metadata:
+                if md.name == "episode":
+                    meta.update(md.metadata)
+            meta.update(recovered="true", recovery_note=json.dumps(error or "complete stream"))
+            w.add_metadata("episode", meta)
+            w.finish()
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(tmp, final)
+        active.unlink()
+        _fsync_dir(final.parent)
+        log.warning("recovered %s (%d messages)", final, len(messages))
+        results.append((final, f"recovered {len(messages)} messages"))
+    return results
+
+
+def iter_topic(path: Path, topics: Iterable[str]) -> Iterable[tuple[str, int, bytes]]:
+    """(topic, log_time ns, raw data) for messages on ``topics`` in log-time order."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        for _schema, channel, message in make_reader(f).iter_messages(topics=list(topics)):
+            yield channel.topic, message.log_time, message.data
