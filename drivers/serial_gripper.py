@@ -112,7 +112,7 @@ class SerialGripper:
     def connect(self) -> None:
         """Open the port and run the activation sequence (reset, activate, wait for gSTA = 3)."""
         try:
-            import serial  # noqa: PLC0415 - lazy: only stations with a serial gripper need it
+            import serial  # lazy: only stations with a serial gripper need it
         except ImportError as exc:
             raise DriverUnavailable(f"serial gripper needs pyserial: {INSTALL_HINT}") from exc
         self._serial_exc = (serial.SerialException, OSError)
