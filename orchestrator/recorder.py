@@ -348,3 +348,125 @@ def iter_topic(path: Path, topics: Iterable[str]) -> Iterable[tuple[str, int, by
     with open(path, "rb") as f:
         for _schema, channel, message in make_reader(f).iter_messages(topics=list(topics)):
             yield channel.topic, message.log_time, message.data
+
+
+class Recorder:
+    """Writes episodes on its own thread so capture never waits on the disk.
+
+    The queue is bounded and ``put`` blocks when it is full: frames are never dropped here.
+    A closed episode stays open for ``close_grace`` more frames so late keypoints of its last
+    frames (the tracker runs behind the camera) still land in it.
+    """
+
+    def __init__(self, camera_id: str, compression: str = "zstd", maxsize: int = 60, close_grace: int = 15) -> None:
+        import queue
+        import threading
+
+        self.camera_id = camera_id
+        self.compression = compression
+        self.close_grace = close_grace
+        self.finished: list[Path] = []
+        self.errors: list[str] = []
+        self.keypoints_written = 0
+        self.keypoints_unmatched = 0
+        self._q: queue.Queue = queue.Queue(maxsize=maxsize)
+        self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
+        self._current: EpisodeWriter | None = None
+        self._closing: list[tuple[EpisodeWriter, dict[str, Any], int]] = []
+        self._current_meta: dict[str, Any] = {}
+        self._thread.start()
+
+    # ------------------------------------------------------------ producer side (any thread)
+    def open_episode(self, path: Path, metadata: dict[str, Any]) -> None:
+        """Start a new episode file (the previous one must have been closed)."""
+        self._q.put(("open", path, metadata))
+
+    def frame(self, frame: RGBDFrame, T_world_cam: np.ndarray) -> None:
+        """Record a frame in the current episode."""
+        self._q.put(("frame", frame, T_world_cam))
+
+    def arm_state(self, state: dict[str, Any], tcp_poses: dict[str, np.ndarray] | None = None) -> None:
+        """Record one joint-state sample of both arms."""
+        self._q.put(("arm", state, tcp_poses))
+
+    def keypoints(self, msg: dict[str, Any]) -> None:
+        """Record a keypoint message in the episode that holds its frame."""
+        self._q.put(("kp", msg))
+
+    def close_episode(self, metadata: dict[str, Any]) -> None:
+        """Finish the current episode with ``metadata`` merged into what open_episode gave."""
+        self._q.put(("close", metadata))
+
+    def stop(self, timeout: float = 60.0) -> None:
+        """Flush everything, close open episodes and join the thread."""
+        self._q.put(("stop",))
+        self._thread.join(timeout)
+        if self._thread.is_alive():
+            self.errors.append(f"recorder did not finish within {timeout} s")
+
+    # ------------------------------------------------------------ writer thread
+    def _finish(self, writer: EpisodeWriter, meta: dict[str, Any]) -> None:
+        try:
+            self.finished.append(writer.close(meta))
+        except Exception as e:
+            self.errors.append(f"{writer.path}: could not be finished ({type(e).__name__}: {e}); left as .active")
+            log.exception("closing %s failed", writer.path)
+            writer.abort()
+
+    def _tick_closing(self) -> None:
+        keep = []
+        for writer, meta, left in self._closing:
+            if left <= 1:
+                self._finish(writer, meta)
+            else:
+                keep.append((writer, meta, left - 1))
+        self._closing = keep
+
+    def _route_keypoints(self, msg: dict[str, Any]) -> None:
+        fn = msg.get("frame_number", -1)
+        t = float(msg.get("stamp", 0.0))
+        for writer in [w for w, _, _ in self._closing] + ([self._current] if self._current else []):
+            if writer.first_frame is not None and writer.first_frame <= fn <= (writer.last_frame or -1):
+                writer.write_keypoints(msg, t)
+                self.keypoints_written += 1
+                return
+        self.keypoints_unmatched += 1
+
+    def _run(self) -> None:
+        while True:
+            item = self._q.get()
+            op = item[0]
+            try:
+                if op == "open":
+                    if self._current is not None:  # defensive: never lose the previous one
+                        self._finish(self._current, {**self._current_meta, "complete": False})
+                    self._current = EpisodeWriter(item[1], self.camera_id, self.compression)
+                    self._current_meta = dict(item[2])
+                elif op == "frame":
+                    if self._current is not None:
+                        self._current.write_frame(item[1], item[2])
+                    self._tick_closing()
+                elif op == "arm":
+                    if self._current is not None:
+                        self._current.write_arm_state(item[1], item[2])
+                elif op == "kp":
+                    self._route_keypoints(item[1])
+                elif op == "close":
+                    if self._current is not None:
+                        meta = {**self._current_meta, **item[1]}
+                        if self.close_grace > 0:
+                            self._closing.append((self._current, meta, self.close_grace))
+                        else:
+                            self._finish(self._current, meta)
+                        self._current = None
+                elif op == "stop":
+                    for writer, meta, _ in self._closing:
+                        self._finish(writer, meta)
+                    self._closing = []
+                    if self._current is not None:
+                        self._finish(self._current, {**self._current_meta, "complete": False})
+                        self._current = None
+                    return
+            except Exception as e:  # keep the thread alive; the session reads .errors
+                self.errors.append(f"recorder: {op}: {type(e).__name__}: {e}")
+                log.exception("recorder op %s failed", op)

@@ -1,0 +1,246 @@
+"""The ``trackdeform`` command line: demo, run, validate, program, worker, watch, track, inspect."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from orchestrator.config import DEFAULT_CONFIG, Config, ConfigError, load_config
+
+log = logging.getLogger("trackdeform")
+DEMO_OBJECTS = ("rope", "branched_rope", "cloth")
+
+
+def _install_signal_handlers(stop: threading.Event) -> None:
+    """First SIGINT/SIGTERM: finish the current frame, close episodes, stop. Second: abort."""
+
+    def handler(signum: int, _frame: Any) -> None:
+        if stop.is_set():
+            raise KeyboardInterrupt
+        print(f"\n{signal.Signals(signum).name}: stopping after the current frame (again to abort)", file=sys.stderr)
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+
+
+def _session_dir(config: Config, out: str | None) -> Path:
+    if out:
+        return Path(out)
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    return Path(config.output.directory) / f"{stamp}_{config.station.name}"
+
+
+def run_session(
+    config: Config,
+    out_dir: Path,
+    *,
+    max_seconds: float | None,
+    loop: bool,
+    with_worker: bool,
+    quiet: bool = False,
+) -> int:
+    """Open the bus, start the tracking worker if asked, run a session, print the summary."""
+    from drivers.clock import RealClock, SimClock
+    from orchestrator.bus import Bus
+    from orchestrator.progress import Progress
+    from orchestrator.session import Session
+
+    stop = threading.Event()
+    _install_signal_handlers(stop)
+    progress = Progress(enabled=not quiet)
+    clock = SimClock() if config.clock == "sim" else RealClock()
+    bus = None
+    worker = None
+    try:
+        if config.bus.enabled:
+            try:
+                bus = Bus(config.bus, config.station.name)
+            except RuntimeError as e:
+                print(f"error: {e}\nhint: another session may be using the port; pass --port", file=sys.stderr)
+                return 2
+        if with_worker and bus is not None and config.tracking.enabled:
+            from orchestrator.workerproc import start_worker
+
+            worker = start_worker(config, out_dir)
+        progress.message(f"recording to {out_dir}")
+        session = Session(config, out_dir, clock, bus=bus, progress=progress, stop_event=stop)
+        summary = session.run(max_seconds=max_seconds, loop=loop)
+    finally:
+        if worker is not None:
+            worker.stop()
+        if bus is not None:
+            bus.close()
+    print(summary.text())
+    return 0 if summary.episodes and not summary.runs_failed and not summary.errors else 1
+
+
+# ---------------------------------------------------------------------- commands
+def cmd_demo(args: argparse.Namespace) -> int:
+    """A mock collection session in real time (or simulated time with --sim-time)."""
+    overrides: dict[str, Any] = {}
+    if args.sim_time:
+        overrides["clock"] = "sim"
+    if args.port:
+        overrides["bus.listen"] = [f"tcp/127.0.0.1:{args.port}"]
+    config = load_config(args.config, overrides)
+    objects = [o for o in config.plan.objects if o.name == args.object]
+    if not objects:
+        names = [o.name for o in config.plan.objects]
+        print(f"error: {args.config}: no object named {args.object!r} in plan.objects (have {names})", file=sys.stderr)
+        return 2
+    data = config.model_dump()
+    data["plan"]["objects"] = [o.model_dump() for o in objects]
+    if args.no_tracking:
+        data["tracking"]["enabled"] = False
+    config = Config.model_validate(data)
+    out = Path(args.out) if args.out else Path("runs") / f"demo-{time.strftime('%Y%m%d-%H%M%S')}"
+    return run_session(config, out, max_seconds=args.seconds, loop=True, with_worker=not args.no_tracking)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """Run a config's plan (the nightly job)."""
+    config = load_config(args.config)
+    out = _session_dir(config, args.out)
+    return run_session(config, out, max_seconds=args.seconds, loop=False, with_worker=not args.no_tracking)
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    """Check a config and everything it references (programs, at every planned speed)."""
+    from orchestrator.programs import check_config_programs
+
+    config = load_config(args.config)
+    print(f"{args.config}: configuration is valid")
+    st = config.station
+    print(f"  station {st.name}: arms {st.left.arm.type}/{st.right.arm.type}, grippers "
+          f"{st.left.gripper.type}/{st.right.gripper.type}, camera {st.camera.type} "
+          f"{st.camera.width}x{st.camera.height}@{st.camera.fps:g}")
+    problems = check_config_programs(config, out=sys.stdout)
+    if problems:
+        print(f"{args.config}: {problems} problem(s) found", file=sys.stderr)
+        return 1
+    print(f"{args.config}: OK")
+    return 0
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    """Print what an episode file holds: metadata and message counts per channel."""
+    from mcap.reader import make_reader
+
+    from orchestrator.recorder import read_episode_metadata
+
+    for p in args.files:
+        path = Path(p)
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+        if summary is None or summary.statistics is None:
+            print(f"{path}: no summary (unfinished file? run `trackdeform recover {path.parent}`)")
+            continue
+        st = summary.statistics
+        meta = read_episode_metadata(path)
+        info: dict[str, Any] = {
+            "file": str(path),
+            "duration_s": (st.message_end_time - st.message_start_time) / 1e9,
+            "channels": {summary.channels[c].topic: n for c, n in sorted(st.channel_message_counts.items())},
+            "metadata": {k: v for k, v in meta.items() if k not in ("calibration", "segments")},
+        }
+        print(json.dumps(info, indent=2) if args.json else _pretty(info))
+    return 0
+
+
+def _pretty(info: dict[str, Any]) -> str:
+    lines = [f"{info['file']}  ({info['duration_s']:.2f} s)"]
+    lines += [f"  {topic:32s} {n:6d} messages" for topic, n in info["channels"].items()]
+    lines += [f"  {k} = {json.dumps(v)}" for k, v in info["metadata"].items()]
+    return "\n".join(lines)
+
+
+def cmd_recover(args: argparse.Namespace) -> int:
+    """Recover or quarantine unfinished ``.mcap.active`` files in a folder."""
+    from orchestrator.recorder import recover_active
+
+    results = recover_active(Path(args.directory))
+    for path, outcome in results:
+        print(f"{path}: {outcome}")
+    if not results:
+        print(f"{args.directory}: nothing to recover")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argparse tree of every subcommand."""
+    p = argparse.ArgumentParser(
+        prog="trackdeform",
+        description="Unattended dual-arm RGB-D collection of deformable-object datasets with TrackDeform3D tracking.",
+    )
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+
+    d = sub.add_parser("demo", help="run a mock collection session (simulated arms, camera and object)")
+    d.add_argument("--object", choices=DEMO_OBJECTS, default="rope", help="object to simulate (default rope)")
+    d.add_argument("--seconds", type=float, default=20.0, help="seconds to record (whole 5 s episodes; default 20)")
+    d.add_argument("--out", help="output folder (default runs/demo-<time>)")
+    d.add_argument("--config", default=str(DEFAULT_CONFIG), help="mock config (default configs/mock.yaml)")
+    d.add_argument("--sim-time", action="store_true", help="simulated time: as fast as the CPU allows")
+    d.add_argument("--port", type=int, help="zenoh TCP port on 127.0.0.1 (default from the config)")
+    d.add_argument("--no-tracking", action="store_true", help="do not start the tracking worker")
+    d.set_defaults(func=cmd_demo)
+
+    r = sub.add_parser("run", help="run the plan of a station config")
+    r.add_argument("config", help="station + plan YAML")
+    r.add_argument("--out", help="output folder (default <output.directory>/<time>_<station>)")
+    r.add_argument("--seconds", type=float, help="stop after this much recording")
+    r.add_argument("--no-tracking", action="store_true", help="do not start the tracking worker")
+    r.set_defaults(func=cmd_run)
+
+    v = sub.add_parser("validate", help="check a config and the programs it references")
+    v.add_argument("config")
+    v.set_defaults(func=cmd_validate)
+
+    i = sub.add_parser("inspect", help="show what episode files hold")
+    i.add_argument("files", nargs="+")
+    i.add_argument("--json", action="store_true")
+    i.set_defaults(func=cmd_inspect)
+
+    rc = sub.add_parser("recover", help="recover unfinished episode files after a crash")
+    rc.add_argument("directory")
+    rc.set_defaults(func=cmd_recover)
+
+    for module in ("orchestrator.cli_program", "orchestrator.cli_tracking"):
+        try:
+            mod = __import__(module, fromlist=["register"])
+        except ModuleNotFoundError as e:
+            if e.name != module:
+                raise
+            continue
+        mod.register(sub)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``trackdeform`` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.WARNING,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
