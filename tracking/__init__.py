@@ -1,0 +1,1 @@
+"""TrackDeform3D keypoint tracking as pure functions on numpy arrays."""

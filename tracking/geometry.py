@@ -1,0 +1,89 @@
+"""Pinhole geometry: lift depth to world points, project world points, splat points into masks.
+
+Camera frame is OpenCV's (x right, y down, z forward); ``T_world_cam`` (4, 4) maps camera to world.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def depth_to_points(
+    depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, mask: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Lift depth pixels to world points.
+
+    depth: (H, W) float, metres, 0 = missing. mask: optional (H, W) bool of pixels to lift.
+    Returns points (N, 3) float64, metres, world frame, and pixels (N, 2) int64 as (row, col).
+    """
+    valid = depth > 0
+    if mask is not None:
+        valid &= mask
+    rows, cols = np.nonzero(valid)
+    z = depth[rows, cols].astype(np.float64)
+    x = (cols - K[0, 2]) * z / K[0, 0]
+    y = (rows - K[1, 2]) * z / K[1, 1]
+    pc = np.stack([x, y, z], axis=1)
+    pw = pc @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+    return pw, np.stack([rows, cols], axis=1)
+
+
+def world_to_camera(points: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
+    """points: (N, 3) world frame, m -> (N, 3) camera frame, m."""
+    R = T_world_cam[:3, :3]
+    return (points - T_world_cam[:3, 3]) @ R
+
+
+def project_points(points: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Project world points to the image.
+
+    points: (N, 3) float64, metres, world frame. Returns uv (N, 2) float64 as (col, row) pixels and
+    z (N,) float64 camera depth in metres (<= 0 means behind the camera).
+    """
+    pc = world_to_camera(points, T_world_cam)
+    z = pc[:, 2]
+    zs = np.where(z > 1e-9, z, 1e-9)
+    u = K[0, 0] * pc[:, 0] / zs + K[0, 2]
+    v = K[1, 1] * pc[:, 1] / zs + K[1, 2]
+    return np.stack([u, v], axis=1), z
+
+
+def scale_intrinsics(K: np.ndarray, s: float) -> np.ndarray:
+    """Camera matrix (3, 3) of the same camera with the image resized by factor s (pixel centres kept)."""
+    Ks = K.astype(np.float64).copy()
+    Ks[0, 0] *= s
+    Ks[1, 1] *= s
+    Ks[0, 2] = (K[0, 2] + 0.5) * s - 0.5
+    Ks[1, 2] = (K[1, 2] + 0.5) * s - 0.5
+    return Ks
+
+
+def splat_mask(
+    points: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, shape: tuple[int, int], radius_m: float
+) -> np.ndarray:
+    """Binary image of points drawn as discs of world radius ``radius_m``, then closed.
+
+    points: (N, 3) float64, metres, world frame. shape: (H, W) of the image K describes.
+    Returns (H, W) bool.
+    """
+    H, W = shape
+    mask = np.zeros((H, W), np.uint8)
+    if len(points) == 0:
+        return mask.astype(bool)
+    uv, z = project_points(points, K, T_world_cam)
+    ok = z > 1e-6
+    uv, z = uv[ok], z[ok]
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    r_px = int(np.clip(np.ceil(radius_m * f / np.median(z)), 1, 25))
+    dy, dx = np.mgrid[-r_px : r_px + 1, -r_px : r_px + 1]
+    disc = (dx**2 + dy**2) <= r_px**2 + 0.5
+    offs = np.stack([dy[disc], dx[disc]], axis=1)
+    rc = np.rint(uv[:, ::-1]).astype(np.int64)
+    allrc = (rc[:, None, :] + offs[None, :, :]).reshape(-1, 2)
+    inside = (allrc[:, 0] >= 0) & (allrc[:, 0] < H) & (allrc[:, 1] >= 0) & (allrc[:, 1] < W)
+    allrc = allrc[inside]
+    mask[allrc[:, 0], allrc[:, 1]] = 1
+    k = np.ones((3, 3), np.uint8)
+    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, k)
+    return mask.astype(bool)

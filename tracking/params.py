@@ -1,0 +1,105 @@
+"""Parameters of the TrackDeform3D pipeline: one frozen dataclass, SI units (metres, pixels, frames)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class TrackingParams:
+    """All knobs of segmentation, initialisation, solver and tracking (defaults suit a 1 m camera distance).
+
+    Segmentation
+      depth_min_m, depth_max_m: valid depth range, m; readings outside are ignored.
+      diff_abs_m: minimum depth change that counts as a change, m.
+      diff_noise_coeff: depth noise model sigma(z) = coeff * z**2 (1/m); threshold = max(abs, k * sigma).
+      diff_sigma_k: how many sigmas of noise a change must exceed.
+      arm_margin_px: dilation of the rendered arm silhouette, px (at full resolution).
+      arm_margin_m: a pixel is arm if its measured depth is farther than rendered arm depth minus this, m.
+      arm_render_stride: rays are cast every this many pixels (then upsampled), px.
+      lift_stride: foreground pixels are lifted every this many rows and columns, px.
+      voxel_m: voxel size of the down-sampled object cloud, m (3-5 mm).
+      dbscan_eps_m, dbscan_min_points: DBSCAN neighbourhood radius (m) and core size.
+      min_cluster_points: clusters smaller than this (voxels) are noise.
+      cluster_keep_fraction, cluster_keep_gap_m: at initialisation also keep clusters at least this
+        fraction of the largest and within this gap of it (an object split by a gripper), m.
+      track_gate_m: in tracking, a cluster is kept if some point lies within this of the previous keypoints, m.
+    Classification
+      classify_seeds, classify_radius_m, classify_k: number of random seeds, neighbourhood radius (m)
+        and maximum neighbours per seed.
+      line_ratio_max: median lambda2/lambda1 below this means 1D.
+      plane_ratio_max: median lambda3/lambda2 below this (and not 1D) means 2D.
+    Image-space anchor detection
+      mask_pixel_m: target pixel footprint of the object mask, m (the image is scaled down to it).
+      junction_merge_m: junction pixels closer than this are one junction, m.
+      spur_length_m: leaf branches shorter than this are pruned, m.
+      lift_radius_px, lift_k: skeleton pixels are lifted as the median of up to k cloud points
+        projected within this radius, px (mask pixels).
+      end_extend_m: leaf anchors are pushed along the branch tangent to the cloud's tip within this, m.
+    1D initialisation
+      n_keypoints_1d: total keypoints of a 1D object (anchors included).
+    2D initialisation
+      grid_rows, grid_cols: cloth keypoint grid.
+    Solver (Algorithm 1)
+      init_iterations, track_iterations: Gauss-Seidel sweeps at initialisation / per tracked frame.
+      use_anchors, use_edge_projection, use_cloud_projection: ablation switches.
+    Tracking (Algorithm 2)
+      anchor_gate_m: Hungarian matches of re-detected to previous anchors farther than this are rejected, m.
+      grasp_gate_m: a TCP farther than this from every keypoint holds nothing, m.
+      causal_window, symmetric_window: moving-average windows, frames.
+      min_object_points: fewer segmented points than this is a bad frame.
+      max_edge_rmse_m, max_chamfer_m: a frame with Abs or CD above these is bad, m.
+      lost_after_frames: this many consecutive bad frames means the track is lost.
+    seed: random seed of every sampled step.
+    """
+
+    depth_min_m: float = 0.15
+    depth_max_m: float = 4.0
+    diff_abs_m: float = 0.004
+    diff_noise_coeff: float = 0.0012
+    diff_sigma_k: float = 3.0
+    arm_margin_px: int = 6
+    arm_margin_m: float = 0.02
+    arm_render_stride: int = 2
+    lift_stride: int = 2
+    voxel_m: float = 0.004
+    dbscan_eps_m: float = 0.012
+    dbscan_min_points: int = 4
+    min_cluster_points: int = 10
+    cluster_keep_fraction: float = 0.2
+    cluster_keep_gap_m: float = 0.08
+    track_gate_m: float = 0.05
+
+    classify_seeds: int = 64
+    classify_radius_m: float = 0.03
+    classify_k: int = 64
+    line_ratio_max: float = 0.25
+    plane_ratio_max: float = 0.3
+
+    mask_pixel_m: float = 0.002
+    junction_merge_m: float = 0.02
+    spur_length_m: float = 0.03
+    lift_radius_px: float = 3.0
+    lift_k: int = 8
+    end_extend_m: float = 0.03
+
+    n_keypoints_1d: int = 25
+    grid_rows: int = 6
+    grid_cols: int = 6
+
+    init_iterations: int = 100
+    track_iterations: int = 20
+    use_anchors: bool = True
+    use_edge_projection: bool = True
+    use_cloud_projection: bool = True
+
+    anchor_gate_m: float = 0.05
+    grasp_gate_m: float = 0.05
+    causal_window: int = 3
+    symmetric_window: int = 5
+    min_object_points: int = 30
+    max_edge_rmse_m: float = 0.015
+    max_chamfer_m: float = 0.015
+    lost_after_frames: int = 5
+
+    seed: int = 0

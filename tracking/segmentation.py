@@ -1,0 +1,308 @@
+"""Object segmentation without colour (paper section III-C): depth differencing, arm removal, DBSCAN.
+
+Two entry points:
+  * ``segment_by_difference``: reference depth D0 vs depth D1 after the arms moved (initialisation);
+  * ``segment_against_background``: per-frame tracking against a static background depth model.
+Both return a voxel-down-sampled world-frame object cloud.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+from tracking.geometry import depth_to_points
+from tracking.params import TrackingParams
+
+
+@dataclass(frozen=True)
+class Segmentation:
+    """Segmented object cloud.
+
+    points: (N, 3) float64, metres, world frame, voxel-down-sampled object points.
+    n_foreground: number of lifted foreground pixels before clustering.
+    n_clusters: DBSCAN clusters found (noise excluded).
+    """
+
+    points: np.ndarray
+    n_foreground: int
+    n_clusters: int
+
+
+def valid_depth(depth: np.ndarray, params: TrackingParams) -> np.ndarray:
+    """(H, W) bool: depth (m) inside the valid range."""
+    return (depth >= params.depth_min_m) & (depth <= params.depth_max_m)
+
+
+def change_threshold(depth: np.ndarray, params: TrackingParams) -> np.ndarray:
+    """(H, W) float32 noise-aware change threshold (m) at reference depth ``depth`` (m)."""
+    sigma = np.float32(params.diff_noise_coeff) * depth * depth
+    return np.maximum(np.float32(params.diff_abs_m), np.float32(params.diff_sigma_k) * sigma)
+
+
+def render_arm_depth(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    shape: tuple[int, int],
+    stride: int = 2,
+) -> np.ndarray:
+    """Raycast world-frame meshes into a camera depth image.
+
+    vertices: (V, 3) float, metres, world frame; triangles: (F, 3) int. shape: (H, W).
+    Rays are cast every ``stride`` pixels inside the meshes' projected bounding box and upsampled.
+    Returns (H, W) float32 camera z-depth in metres, +inf where no mesh is hit.
+    """
+    H, W = shape
+    out = np.full((H, W), np.inf, np.float32)
+    if len(vertices) == 0 or len(triangles) == 0:
+        return out
+    R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
+    vc = (vertices - t) @ R
+    front = vc[:, 2] > 1e-3
+    if not front.any():
+        return out
+    if front.all():
+        u = K[0, 0] * vc[:, 0] / vc[:, 2] + K[0, 2]
+        v = K[1, 1] * vc[:, 1] / vc[:, 2] + K[1, 2]
+        c0, c1 = int(np.clip(np.floor(u.min()), 0, W)), int(np.clip(np.ceil(u.max()) + 1, 0, W))
+        r0, r1 = int(np.clip(np.floor(v.min()), 0, H)), int(np.clip(np.ceil(v.max()) + 1, 0, H))
+    else:
+        c0, c1, r0, r1 = 0, W, 0, H
+    if c1 <= c0 or r1 <= r0:
+        return out
+    rows = np.arange(r0, r1, stride)
+    cols = np.arange(c0, c1, stride)
+    cc, rr = np.meshgrid(cols, rows)
+    dc = np.stack(
+        [(cc - K[0, 2]) / K[0, 0], (rr - K[1, 2]) / K[1, 1], np.ones_like(cc, dtype=np.float64)], axis=-1
+    ).reshape(-1, 3)
+    dc /= np.linalg.norm(dc, axis=1, keepdims=True)
+    rays = np.empty((len(dc), 6), np.float32)
+    rays[:, :3] = t
+    rays[:, 3:] = dc @ R.T
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
+        o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32)),
+    )
+    t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    z = (t_hit * dc[:, 2]).astype(np.float32).reshape(len(rows), len(cols))
+    block = np.repeat(np.repeat(z, stride, axis=0), stride, axis=1)[: r1 - r0, : c1 - c0]
+    out[r0:r1, c0:c1] = block
+    return out
+
+
+def render_arm_mask(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    shape: tuple[int, int],
+    margin_px: int,
+    depth: np.ndarray | None = None,
+    margin_m: float = 0.02,
+    stride: int = 2,
+) -> np.ndarray:
+    """Image-space arm mask from rendered arm meshes.
+
+    vertices: (V, 3) float, metres, world frame; triangles: (F, 3) int; shape: (H, W).
+    The rendered silhouette is grown by ``margin_px`` (nearest arm depth propagated). Without
+    ``depth`` the grown silhouette is returned; with measured depth (H, W) float metres a pixel is
+    arm when it is inside the grown silhouette and its measured depth is missing, within
+    ``margin_m`` of, or behind the rendered arm (an object in front of the arm survives).
+    Returns (H, W) bool.
+    """
+    arm = render_arm_depth(vertices, triangles, K, T_world_cam, shape, stride)
+    if margin_px > 0:
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin_px + 1, 2 * margin_px + 1))
+        arm = cv2.erode(arm, k)
+    sil = np.isfinite(arm)
+    if depth is None:
+        return sil
+    return sil & ((depth <= 0) | (depth >= arm - np.float32(margin_m)))
+
+
+def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """points: (N, 3) float64, m -> (M, 3) float64 voxel centroids (open3d), m."""
+    if len(points) == 0:
+        return np.zeros((0, 3))
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points, np.float64)))
+    return np.asarray(pcd.voxel_down_sample(voxel_m).points)
+
+
+def dbscan_labels(points: np.ndarray, eps_m: float, min_points: int) -> np.ndarray:
+    """points: (N, 3) float64, m -> (N,) int64 DBSCAN labels (open3d), -1 = noise."""
+    if len(points) == 0:
+        return np.zeros(0, np.int64)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points, np.float64)))
+    return np.asarray(pcd.cluster_dbscan(eps=eps_m, min_points=min_points, print_progress=False), np.int64)
+
+
+def select_largest_clusters(points: np.ndarray, labels: np.ndarray, params: TrackingParams) -> np.ndarray:
+    """Largest cluster plus clusters of comparable size close to it (an object split by a gripper).
+
+    points: (N, 3) float64, m; labels: (N,) int64. Returns (M, 3) float64 object points.
+    """
+    ok = labels >= 0
+    if not ok.any():
+        return np.zeros((0, 3))
+    sizes = np.bincount(labels[ok])
+    big = int(np.argmax(sizes))
+    if sizes[big] < params.min_cluster_points:
+        return np.zeros((0, 3))
+    keep_label = np.zeros(len(sizes), bool)
+    keep_label[big] = True
+    cand = ok & (sizes[np.maximum(labels, 0)] >= params.cluster_keep_fraction * sizes[big]) & (labels != big)
+    if cand.any():
+        d, _ = cKDTree(points[labels == big]).query(points[cand], distance_upper_bound=params.cluster_keep_gap_m)
+        near = np.isfinite(d)
+        keep_label[np.unique(labels[cand][near])] = True
+    return points[ok & keep_label[np.maximum(labels, 0)]]
+
+
+def select_clusters_near(
+    points: np.ndarray, labels: np.ndarray, keypoints: np.ndarray, params: TrackingParams
+) -> np.ndarray:
+    """Clusters with a point within ``track_gate_m`` of the previous keypoints (N, 3) -> (M, 3) float64, m."""
+    ok = labels >= 0
+    if not ok.any() or len(keypoints) == 0:
+        return np.zeros((0, 3))
+    sizes = np.bincount(labels[ok])
+    d, _ = cKDTree(keypoints).query(points[ok], distance_upper_bound=params.track_gate_m)
+    near = np.bincount(labels[ok], weights=np.isfinite(d).astype(np.float64), minlength=len(sizes)) > 0
+    near &= sizes >= params.min_cluster_points
+    return points[ok & near[np.maximum(labels, 0)]]
+
+
+def _cluster(
+    depth: np.ndarray,
+    fg: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    params: TrackingParams,
+    prev_keypoints: np.ndarray | None,
+) -> Segmentation:
+    """Lift foreground (H, W) bool pixels, voxelise, DBSCAN and select the object clusters."""
+    s = max(1, params.lift_stride)
+    sub = np.zeros_like(fg)
+    sub[::s, ::s] = fg[::s, ::s]
+    pts, _ = depth_to_points(depth, K, T_world_cam, sub)
+    vox = voxel_downsample(pts, params.voxel_m)
+    labels = dbscan_labels(vox, params.dbscan_eps_m, params.dbscan_min_points)
+    n_clusters = int(labels.max()) + 1 if len(labels) else 0
+    if prev_keypoints is None:
+        obj = select_largest_clusters(vox, labels, params)
+    else:
+        obj = select_clusters_near(vox, labels, prev_keypoints, params)
+    return Segmentation(obj, len(pts), n_clusters)
+
+
+def difference_masks(
+    depth_ref: np.ndarray, depth1: np.ndarray, params: TrackingParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """Signed depth change between reference depth(s) and depth1, metres.
+
+    depth_ref: (H, W) or (R, H, W) float; depth1: (H, W) float. Returns (appeared, vanished), each
+    (H, W) bool: appeared = in front of some reference surface (the object in frame 1), vanished =
+    behind some reference surface (where the object stood in that reference).
+    The change threshold is sqrt(2) * max(abs, k * sigma(z)): both frames are noisy.
+    """
+    refs = depth_ref[None] if depth_ref.ndim == 2 else depth_ref
+    ok1 = valid_depth(depth1, params)
+    appeared = np.zeros(depth1.shape, bool)
+    vanished = np.zeros(depth1.shape, bool)
+    for d0 in refs:
+        both = ok1 & valid_depth(d0, params)
+        thr = np.float32(np.sqrt(2.0)) * change_threshold(np.minimum(d0, depth1), params)
+        diff = depth1 - d0
+        appeared |= both & (diff < -thr)
+        vanished |= both & (diff > thr)
+    return appeared, vanished
+
+
+def segment_by_difference(
+    depth_ref: np.ndarray,
+    depth1: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    params: TrackingParams,
+    arm_mask: np.ndarray | None = None,
+) -> Segmentation:
+    """Initial segmentation: the object in depth1 (H, W) float m against reference depth(s) m.
+
+    depth_ref: (H, W) reference D0, or (R, H, W) several references with the object elsewhere (e.g.
+    D0 and D2 around D1): a pixel counts if it is in front of any of them, so the object is only
+    missed where it overlaps itself in every reference. arm_mask: optional (H, W) bool arm pixels of
+    frame 1 (``render_arm_mask``). Keeps the largest DBSCAN cluster (plus comparable clusters
+    split from it by a gripper).
+    """
+    appeared, _ = difference_masks(depth_ref, depth1, params)
+    if arm_mask is not None:
+        appeared &= ~arm_mask
+    return _cluster(depth1, appeared, K, T_world_cam, params, None)
+
+
+def background_from_depths(depths: np.ndarray) -> np.ndarray:
+    """Static background (H, W) float32 metres: per-pixel median of (K, H, W) depths ignoring zeros."""
+    d = np.asarray(depths, np.float32)
+    if d.ndim == 2:
+        return d.copy()
+    d = np.where(d > 0, d, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(d, axis=0)
+    return np.nan_to_num(med, nan=0.0).astype(np.float32)
+
+
+def update_background(
+    background: np.ndarray, depth: np.ndarray, params: TrackingParams, arm_mask: np.ndarray | None = None
+) -> np.ndarray:
+    """Background (H, W) float32 m updated with newly revealed farther surfaces of depth (H, W) m.
+
+    Where the measured depth is significantly behind the background, whatever stood there (the
+    object in the reference frames) has moved away: the farther surface becomes the background.
+    """
+    ok = valid_depth(depth, params)
+    if arm_mask is not None:
+        ok &= ~arm_mask
+    bg_ok = background > 0
+    revealed = ok & bg_ok & (depth - background > change_threshold(background, params))
+    out = background.copy()
+    out[revealed] = depth[revealed]
+    return out
+
+
+def foreground_mask(
+    depth: np.ndarray, background: np.ndarray, params: TrackingParams, arm_mask: np.ndarray | None = None
+) -> np.ndarray:
+    """(H, W) bool: valid pixels significantly in front of the background (m), arm pixels removed."""
+    fg = valid_depth(depth, params) & (background > 0)
+    fg &= background - depth > change_threshold(background, params)
+    if arm_mask is not None:
+        fg &= ~arm_mask
+    return fg
+
+
+def segment_against_background(
+    depth: np.ndarray,
+    background: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    params: TrackingParams,
+    arm_mask: np.ndarray | None = None,
+    prev_keypoints: np.ndarray | None = None,
+) -> Segmentation:
+    """Per-frame segmentation: pixels in front of the background minus arms, clustered.
+
+    depth, background: (H, W) float metres. prev_keypoints: (N, 3) m; when given, clusters near
+    them are kept (all of them: an object split by a gripper stays whole), else the largest.
+    """
+    fg = foreground_mask(depth, background, params, arm_mask)
+    return _cluster(depth, fg, K, T_world_cam, params, prev_keypoints)
