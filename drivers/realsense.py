@@ -1,0 +1,149 @@
+"""Intel RealSense D4xx through pyrealsense2: colour + depth, depth aligned to colour.
+
+Streams RGB8 colour and Z16 depth at the configured size and rate, aligns every depth frame
+to the colour camera with ``rs.align``, and reports the colour stream's intrinsics and the
+depth sensor's ``depth_scale`` (metres per depth unit). ``device_stamp`` is the frame's
+hardware timestamp (``frame_timestamp`` metadata, µs -> s, when the firmware provides it;
+otherwise ``get_timestamp()`` ms -> s). pyrealsense2 is imported lazily.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from drivers.base import DeviceError, DriverUnavailable
+from drivers.clock import Clock, RealClock
+from drivers.config import RealSenseCameraConfig
+from drivers.types import CameraIntrinsics, RGBDFrame
+
+INSTALL_HINT = "pip install 'trackdeform3d[realsense]' (and the system library libusb-1.0-0)"
+
+
+def import_rs() -> Any:
+    """Import pyrealsense2 or raise DriverUnavailable with the install command."""
+    try:
+        import pyrealsense2 as rs  # lazy: only RealSense stations need it
+    except ImportError as exc:
+        raise DriverUnavailable(f"the RealSense driver needs pyrealsense2: {INSTALL_HINT}") from exc
+    return rs
+
+
+class RealSenseCamera:
+    """A RealSense colour + depth camera behind the RGBDCamera interface."""
+
+    def __init__(self, config: RealSenseCameraConfig, *, name: str | None = None, clock: Clock | None = None,
+                 **_: Any) -> None:
+        self.config = config
+        self.id = config.id
+        self.name = name or config.id
+        self._clock: Clock = clock or RealClock()
+        self._rs: Any = None
+        self._pipeline: Any = None
+        self._align: Any = None
+        self._intrinsics: CameraIntrinsics | None = None
+        self.depth_scale = 0.0
+        self.serial: str | None = None
+        self.last_frame_number = -1
+        self.dropped = 0  # frames skipped by the device (frame-number gaps)
+
+    @property
+    def intrinsics(self) -> CameraIntrinsics:
+        """Intrinsics of the colour stream (the depth is aligned to it)."""
+        if self._intrinsics is None:
+            raise DeviceError(f"{self.name}: not connected")
+        return self._intrinsics
+
+    def connect(self) -> None:
+        """Start colour + depth streaming and read intrinsics and depth scale."""
+        rs = self._rs = import_rs()
+        c = self.config
+        fps = int(round(c.fps))
+        try:
+            cfg = rs.config()
+            if c.serial:
+                cfg.enable_device(c.serial)
+            cfg.enable_stream(rs.stream.depth, c.width, c.height, rs.format.z16, fps)
+            cfg.enable_stream(rs.stream.color, c.width, c.height, rs.format.rgb8, fps)
+            self._pipeline = rs.pipeline()
+            profile = self._pipeline.start(cfg)
+        except RuntimeError as exc:
+            self._pipeline = None
+            raise DeviceError(f"{self.name}: cannot start streaming ({c.width}x{c.height}@{fps}): {exc}") from exc
+        try:
+            device = profile.get_device()
+            self.serial = device.get_info(rs.camera_info.serial_number)
+            depth_sensor = device.first_depth_sensor()
+            self.depth_scale = float(depth_sensor.get_depth_scale())
+            if c.laser_power is not None and depth_sensor.supports(rs.option.laser_power):
+                depth_sensor.set_option(rs.option.laser_power, float(c.laser_power))
+            intr = profile.get_stream(rs.stream.color).as_video_stream_profile().get_intrinsics()
+            self._intrinsics = CameraIntrinsics(int(intr.width), int(intr.height), float(intr.fx), float(intr.fy),
+                                                float(intr.ppx), float(intr.ppy))
+            self._align = rs.align(rs.stream.color)
+        except RuntimeError as exc:
+            self.close()
+            raise DeviceError(f"{self.name}: cannot configure the device: {exc}") from exc
+        self.read(timeout=self.config.start_timeout)  # the first frame proves the streams run
+
+    def close(self) -> None:
+        """Stop streaming (idempotent)."""
+        pipeline, self._pipeline = self._pipeline, None
+        if pipeline is not None:
+            try:
+                pipeline.stop()
+            except RuntimeError:
+                pass
+
+    def read(self, timeout: float = 1.0) -> RGBDFrame:
+        """Wait for the next frameset, align depth to colour and return it as an RGBDFrame."""
+        if self._pipeline is None:
+            raise DeviceError(f"{self.name}: not connected")
+        try:
+            frames = self._pipeline.wait_for_frames(int(max(timeout, 0.001) * 1000))
+        except RuntimeError as exc:  # "Frame didn't arrive within <ms>"
+            raise DeviceError(f"{self.name}: no frame within {timeout:.3f} s: {exc}") from exc
+        host_stamp = self._clock.now()
+        try:
+            aligned = self._align.process(frames)
+            color, depth = aligned.get_color_frame(), aligned.get_depth_frame()
+            if not color or not depth:
+                raise DeviceError(f"{self.name}: frameset without colour or depth")
+            color_img = np.array(color.get_data(), dtype=np.uint8, copy=True)  # the SDK recycles buffers
+            depth_img = np.array(depth.get_data(), dtype=np.uint16, copy=True)
+            number = int(color.get_frame_number())
+            stamp = self._device_stamp(color)
+        except RuntimeError as exc:
+            if isinstance(exc, DeviceError):
+                raise
+            raise DeviceError(f"{self.name}: bad frameset: {exc}") from exc
+        if self.last_frame_number >= 0 and number > self.last_frame_number + 1:
+            self.dropped += number - self.last_frame_number - 1
+        self.last_frame_number = number
+        return RGBDFrame(color_img, depth_img, self.depth_scale, self.intrinsics, stamp, host_stamp, number)
+
+    def _device_stamp(self, frame: Any) -> float:
+        """Hardware timestamp of ``frame`` in seconds."""
+        meta = self._rs.frame_metadata_value.frame_timestamp
+        if frame.supports_frame_metadata(meta):
+            return float(frame.get_frame_metadata(meta)) * 1e-6
+        return float(frame.get_timestamp()) * 1e-3
+
+    def recover(self) -> None:
+        """Restart the pipeline; reset the USB device first when a plain restart fails."""
+        self.close()
+        try:
+            self.connect()
+            return
+        except DeviceError:
+            pass
+        rs = self._rs or import_rs()
+        try:
+            for dev in rs.context().query_devices():
+                if self.serial is None or dev.get_info(rs.camera_info.serial_number) == self.serial:
+                    dev.hardware_reset()
+                    break
+        except RuntimeError as exc:
+            raise DeviceError(f"{self.name}: hardware reset failed: {exc}") from exc
+        raise DeviceError(f"{self.name}: device reset; it re-enumerates in a few seconds, retry recover()")
