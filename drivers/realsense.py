@@ -85,7 +85,11 @@ class RealSenseCamera:
         except RuntimeError as exc:
             self.close()
             raise DeviceError(f"{self.name}: cannot configure the device: {exc}") from exc
-        self.read(timeout=self.config.start_timeout)  # the first frame proves the streams run
+        try:
+            self.read(timeout=self.config.start_timeout)  # the first frame proves the streams run
+        except DeviceError:
+            self.close()
+            raise
 
     def close(self) -> None:
         """Stop streaming (idempotent)."""
