@@ -27,6 +27,8 @@ DEPTH_SCALE = 0.001  # depthai depth frames are millimetres
 COLOR_SENSOR = (1920, 1080)  # the v2 ColorCamera runs THE_1080_P and scales the ISP output
 POLL = 0.002  # s between queue polls
 
+NOMINAL_HFOV_DEG = 69.0  # OAK-D CAM_A (IMX378), used only before connect()
+
 
 def import_depthai() -> Any:
     """Import depthai or raise DriverUnavailable with the install command."""
@@ -73,9 +75,9 @@ class OakCamera:
 
     @property
     def intrinsics(self) -> CameraIntrinsics:
-        """Intrinsics of CAM_A at the output size (depth is aligned to it)."""
+        """Calibrated intrinsics of the colour image once connected; a nominal 69° HFOV pinhole before."""
         if self._intrinsics is None:
-            raise DeviceError(f"{self.name}: not connected")
+            return CameraIntrinsics.from_fov(self.config.width, self.config.height, NOMINAL_HFOV_DEG)
         return self._intrinsics
 
     # ------------------------------------------------------------------ lifecycle

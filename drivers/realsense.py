@@ -20,6 +20,8 @@ from drivers.types import CameraIntrinsics, RGBDFrame
 
 INSTALL_HINT = "pip install 'trackdeform3d[realsense]' (and the system library libusb-1.0-0)"
 
+NOMINAL_HFOV_DEG = 69.0  # D4xx colour camera, used only before connect()
+
 
 def import_rs() -> Any:
     """Import pyrealsense2 or raise DriverUnavailable with the install command."""
@@ -50,9 +52,9 @@ class RealSenseCamera:
 
     @property
     def intrinsics(self) -> CameraIntrinsics:
-        """Intrinsics of the colour stream (the depth is aligned to it)."""
+        """Calibrated intrinsics of the colour image once connected; a nominal 69° HFOV pinhole before."""
         if self._intrinsics is None:
-            raise DeviceError(f"{self.name}: not connected")
+            return CameraIntrinsics.from_fov(self.config.width, self.config.height, NOMINAL_HFOV_DEG)
         return self._intrinsics
 
     def connect(self) -> None:
