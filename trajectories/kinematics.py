@@ -135,3 +135,24 @@ def pose_to_input(T: np.ndarray) -> np.ndarray:
 def arm_inputs(left: PandaKinematics, right: PandaKinematics, q_left: np.ndarray, q_right: np.ndarray) -> np.ndarray:
     """The paper's control input u_t: (12,) = left TCP [p, rotvec] then right TCP [p, rotvec], world frame."""
     return np.concatenate([pose_to_input(left.tcp_pose(q_left)), pose_to_input(right.tcp_pose(q_right))])
+
+
+def arm_inputs_batch(left: PandaKinematics, right: PandaKinematics, q_left: np.ndarray,
+                     q_right: np.ndarray) -> np.ndarray:
+    """u_t for T joint states: (T, 12) from q_left, q_right (T, 7) rad.
+
+    Convention (the paper's control input): per arm the TCP (``panda_hand_tcp``, between the
+    fingertips) position in metres then its orientation as a rotation vector (axis * angle, rad,
+    |angle| <= pi), both in the world frame; left arm in columns 0-5, right arm in columns 6-11.
+    """
+    from scipy.spatial.transform import Rotation
+
+    q_left, q_right = np.atleast_2d(np.asarray(q_left, dtype=np.float64)), np.atleast_2d(np.asarray(q_right))
+    if q_left.shape != q_right.shape or q_left.shape[1:] != (N_JOINTS,):
+        raise ValueError(f"expected two (T, 7) joint arrays, got {q_left.shape} and {q_right.shape}")
+    out = np.empty((len(q_left), 12))
+    for c, kin, qs in ((0, left, q_left), (6, right, q_right)):
+        T = np.stack([kin.tcp_pose(q) for q in qs]) if len(qs) else np.empty((0, 4, 4))
+        out[:, c:c + 3] = T[:, :3, 3]
+        out[:, c + 3:c + 6] = Rotation.from_matrix(T[:, :3, :3]).as_rotvec() if len(qs) else np.empty((0, 3))
+    return out

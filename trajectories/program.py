@@ -193,6 +193,8 @@ def save_program(program: Program, path: str | Path) -> None:
             k: (g.state if g.width is None and g.force is None else g.model_dump(exclude_none=True))
             for k, g in w.grippers.items()
         }
+        if not raw["grippers"]:
+            raw.pop("grippers")
         for key, default in (("duration", None), ("speed_scale", 1.0), ("dwell", 0.0)):
             if raw.get(key) == default:
                 raw.pop(key, None)
@@ -200,3 +202,29 @@ def save_program(program: Program, path: str | Path) -> None:
         path.write_text(json.dumps(data, indent=2) + "\n")
     else:
         path.write_text(yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=120))
+
+
+LIBRARY_DIR = Path(__file__).resolve().parent / "library"
+
+
+def list_library() -> list[str]:
+    """Names of the shipped programs (``trajectories/library/*.yaml``), sorted."""
+    return sorted(p.stem for p in LIBRARY_DIR.glob("*.yaml"))
+
+
+def library_path(name: str) -> Path:
+    """Path of the shipped program ``name`` (e.g. ``rope_swing``)."""
+    p = LIBRARY_DIR / f"{name}.yaml"
+    if not p.is_file():
+        raise ProgramError(f"no library program {name!r}; available: {', '.join(list_library()) or 'none'}")
+    return p
+
+
+def resolve_program(ref: str | Path) -> Path:
+    """A program file path, or the library program named ``ref`` when no such file exists."""
+    p = Path(ref)
+    if p.is_file():
+        return p
+    if p.suffix == "" and p.parent == Path("."):
+        return library_path(str(ref))
+    raise ProgramError(f"{ref}: no such file (and not a library name: {', '.join(list_library())})")
