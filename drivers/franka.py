@@ -157,32 +157,40 @@ class FrankaArm:
 
     # ------------------------------------------------------------------ motion
     def build_motion(self, motion: JointMotion) -> Any:
-        """The franky JointWaypointMotion for ``motion`` (one waypoint per segment)."""
+        """The franky JointWaypointMotion for ``motion`` (one waypoint per segment).
+
+        A moving segment gets ``minimum_time`` = its duration; a dwell (limit_scale 0 or no
+        displacement) is a waypoint at the same target held for its duration.
+        """
         franky = self._franky
         waypoints = []
+        previous = np.asarray(motion.q[0], dtype=np.float64)[:7]
         for target, duration, scale in zip(motion.targets, motion.durations, motion.limit_scale, strict=True):
+            target = np.asarray(target, dtype=np.float64)[:7]
+            dwell = scale <= 0.0 or float(np.max(np.abs(target - previous))) < 1e-6
             factor: Any = 1.0
-            if self.config.segment_dynamics:
+            if self.config.segment_dynamics and not dwell:
                 # limit_scale is relative to the arm's full limits; franky multiplies the robot
                 # factor in, so divide it out (velocity stays free so the duration can be met).
                 a = float(np.clip(scale / self.config.relative_dynamics, 1e-3, 1.0))
                 factor = franky.RelativeDynamicsFactor(1.0, a, a)
-            waypoints.append(self._waypoint(np.asarray(target, dtype=np.float64)[:7].tolist(), factor,
-                                            float(duration)))
+            waypoints.append(self._waypoint(target.tolist(), factor, float(duration), dwell))
+            previous = target
         return franky.JointWaypointMotion(waypoints)
 
-    def _waypoint(self, target: list[float], factor: Any, duration: float) -> Any:
-        """A JointWaypoint reaching ``target`` in at least ``duration`` s.
+    def _waypoint(self, target: list[float], factor: Any, duration: float, dwell: bool) -> Any:
+        """A JointWaypoint reaching ``target`` in at least ``duration`` s (or holding it that long).
 
-        franky >= 1.0 takes ``minimum_time`` as a ``Duration`` (ms); earlier 0.x builds took
-        float seconds, so fall back to that when the Duration form is refused.
+        franky >= 1.0 takes ``minimum_time``/``hold_target_duration`` as ``Duration`` (ms);
+        earlier 0.x builds took float seconds, so fall back to that when Duration is refused.
         """
         franky = self._franky
+        key = "hold_target_duration" if dwell else "minimum_time"
         try:
             return franky.JointWaypoint(target, relative_dynamics_factor=factor,
-                                        minimum_time=_duration(franky, duration))
+                                        **{key: _duration(franky, duration)})
         except TypeError:
-            return franky.JointWaypoint(target, relative_dynamics_factor=factor, minimum_time=duration)
+            return franky.JointWaypoint(target, relative_dynamics_factor=factor, **{key: duration})
 
     def start_motion(self, motion: JointMotion) -> None:
         """Send the waypoint motion asynchronously (returns at once); it must start here."""
@@ -243,11 +251,11 @@ class FrankaHand:
     """The Franka Hand through franky.Gripper: asynchronous move/grasp, homing on connect."""
 
     def __init__(self, config: FrankaHandConfig, *, name: str = "franka_hand", clock: Clock | None = None,
-                 arm: Any = None, host: str | None = None, **_: Any) -> None:
+                 arm: Any = None, arm_config: Any = None, host: str | None = None, **_: Any) -> None:
         self.config = config
         self.name = name
         self._clock: Clock = clock or RealClock()
-        self.host = config.host or host or _host_of(arm)
+        self.host = config.host or host or _host_of(arm) or _host_of(arm_config)
         self._franky: Any = None
         self._gripper: Any = None
         self._future: Any = None
@@ -256,7 +264,7 @@ class FrankaHand:
     def connect(self) -> None:
         """Connect to the hand (via the arm's FCI host) and home the fingers."""
         if not self.host:
-            raise DeviceError(f"{self.name}: no host: set gripper.host or build it with arm=<arm or its config>",
+            raise DeviceError(f"{self.name}: no host: set gripper.host or build it with arm_config=<the arm's config>",
                               recoverable=False)
         self._franky = import_franky()
         with self._errors(f"connect to {self.host}"):

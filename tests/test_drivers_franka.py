@@ -69,6 +69,20 @@ def test_motion_becomes_waypoints_with_minimum_times(franky):
     assert np.allclose(a.read_state().q, HOME)  # back at the last target
 
 
+def test_dwell_segment_holds_its_target(franky):
+    a = arm()
+    a.connect()
+    m = motion(HOME, [0.1, 0.1], [0.5, 1.0])
+    m = JointMotion(m.times, m.q, m.dq, m.targets, m.durations, np.array([0.02, 0.0]))
+    a.start_motion(m)
+    fm = [c[2][0] for c in franky.Robot.instances[0].calls if c[1] == "move"][0]
+    first, dwell = fm.waypoints
+    assert first.minimum_time.ms == 500 and first.hold_target_duration.ms == 0
+    assert dwell.minimum_time is None and dwell.hold_target_duration.ms == 1000
+    assert dwell.relative_dynamics_factor == 1.0
+    assert a.wait_motion(2.0)
+
+
 def test_wait_motion_times_out_while_running(franky):
     a = arm()
     a.connect()
@@ -167,7 +181,7 @@ def test_missing_franky_raises_driver_unavailable(monkeypatch):
 
 def test_hand_homes_then_grasps_and_opens(franky):
     a = arm("172.16.0.2")
-    hand = create_gripper(FrankaHandConfig(force=25.0, speed=0.04), name="left_hand", arm=a)
+    hand = create_gripper(FrankaHandConfig(force=25.0, speed=0.04), name="left_hand", arm_config=a.config)
     assert isinstance(hand, FrankaHand)
     hand.connect()
     g = franky.Gripper.instances[0]

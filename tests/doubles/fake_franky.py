@@ -79,12 +79,14 @@ class JointWaypoint:
     def __init__(self, target: Any, reference_type: Any = None, relative_dynamics_factor: Any = 1.0,
                  minimum_time: Duration | None = None, hold_target_duration: Duration | None = None,
                  max_total_duration: Duration | None = None) -> None:
-        if minimum_time is not None and not isinstance(minimum_time, Duration):
-            raise TypeError("minimum_time must be a Duration")
+        for value in (minimum_time, hold_target_duration):
+            if value is not None and not isinstance(value, Duration):
+                raise TypeError("minimum_time / hold_target_duration must be a Duration")
         self.target = np.asarray(target, dtype=float)
         assert self.target.shape == (7,)
         self.relative_dynamics_factor = relative_dynamics_factor
         self.minimum_time = minimum_time
+        self.hold_target_duration = hold_target_duration or Duration(0)
 
 
 class JointWaypointMotion:
@@ -93,7 +95,8 @@ class JointWaypointMotion:
         self.waypoints = list(waypoints)
 
     def duration(self) -> float:
-        return sum(w.minimum_time.to_sec() if w.minimum_time else 0.0 for w in self.waypoints)
+        return sum((w.minimum_time.to_sec() if w.minimum_time else 0.0) + w.hold_target_duration.to_sec()
+                   for w in self.waypoints)
 
 
 class JointStopMotion:
