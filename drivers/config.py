@@ -130,6 +130,9 @@ class SerialGripperConfig(StrictModel):
     min_force: float = Field(20.0, ge=0.0, le=500.0, description="grip force at register 0, N")
     max_force: float = Field(235.0, gt=0.0, le=500.0, description="grip force at register 255, N")
     activation_timeout: float = Field(5.0, gt=0.0, le=30.0, description="wait for activation, s")
+    state_period: float = Field(
+        0.02, ge=0.0, le=1.0, description="reuse a status read this recent instead of a new Modbus request, s"
+    )
 
 
 GripperConfig = Annotated[

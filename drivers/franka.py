@@ -248,7 +248,11 @@ class FrankaArm:
 
 
 class FrankaHand:
-    """The Franka Hand through franky.Gripper: asynchronous move/grasp, homing on connect."""
+    """The Franka Hand through franky.Gripper: asynchronous move/grasp, homing on connect.
+
+    libfranka's gripper state read blocks until the hand's next state packet, so a background
+    thread keeps the latest state and read_state() returns it without blocking.
+    """
 
     def __init__(self, config: FrankaHandConfig, *, name: str = "franka_hand", clock: Clock | None = None,
                  arm: Any = None, arm_config: Any = None, host: str | None = None, **_: Any) -> None:
@@ -259,10 +263,14 @@ class FrankaHand:
         self._franky: Any = None
         self._gripper: Any = None
         self._future: Any = None
-        self._closing = False
+        self._state: GripperState | None = None
+        self._state_error: DeviceError | None = None
+        self._state_ready = threading.Event()
+        self._stop = threading.Event()
+        self._poller: threading.Thread | None = None
 
     def connect(self) -> None:
-        """Connect to the hand (via the arm's FCI host) and home the fingers."""
+        """Connect to the hand (via the arm's FCI host), home the fingers, start the state reader."""
         if not self.host:
             raise DeviceError(f"{self.name}: no host: set gripper.host or build it with arm_config=<the arm's config>",
                               recoverable=False)
@@ -271,12 +279,40 @@ class FrankaHand:
             self._gripper = self._franky.Gripper(self.host)
             if self.config.home_on_connect:
                 self._gripper.homing()
+        self._stop.clear()
+        self._state_ready.clear()
+        self._state_error = None
+        self._poller = threading.Thread(target=self._poll, args=(self._gripper,), name=f"{self.name}-state",
+                                        daemon=True)
+        self._poller.start()
+        if not self._state_ready.wait(5.0):
+            self.close()
+            raise DeviceError(f"{self.name}: no gripper state within 5 s")
+        self.read_state()
+
+    def _poll(self, gripper: Any) -> None:
+        """Read the hand's state continuously (each read waits for the next packet)."""
+        while not self._stop.is_set():
+            try:
+                with self._errors("read state"):
+                    state = gripper.state
+                    self._state = GripperState(self._clock.now(), float(state.width), bool(state.is_grasped))
+                self._state_error = None
+            except DeviceError as exc:
+                self._state_error = exc
+                self._stop.wait(0.1)
+            self._state_ready.set()
+            self._stop.wait(0.001)
 
     def _errors(self, what: str) -> _FrankyErrors:
         return _FrankyErrors(self.name, what, self._franky)
 
     def close(self) -> None:
-        """Drop the connection (idempotent); the fingers keep their position."""
+        """Stop the state reader and drop the connection (idempotent); the fingers keep their position."""
+        self._stop.set()
+        poller, self._poller = self._poller, None
+        if poller is not None and poller is not threading.current_thread():
+            poller.join(timeout=2.0)
         self._gripper = None
         self._future = None
 
@@ -295,7 +331,6 @@ class FrankaHand:
             else:
                 target = float(self._gripper.max_width if width is None else width)
                 self._future = self._gripper.move_async(target, speed)
-        self._closing = closed
 
     def wait(self, timeout: float) -> bool | None:
         """Result of the last command (None while it still runs after ``timeout`` s)."""
@@ -307,23 +342,23 @@ class FrankaHand:
             return bool(self._future.get())
 
     def read_state(self) -> GripperState:
-        """Finger width and grasp flag from the hand's state."""
-        if self._gripper is None:
+        """The latest finger width and grasp flag (non-blocking)."""
+        if self._gripper is None or self._state is None:
             raise DeviceError(f"{self.name}: not connected")
-        with self._errors("read state"):
-            state = self._gripper.state
-            width, grasped = float(state.width), bool(state.is_grasped)
-        return GripperState(self._clock.now(), width, grasped)
+        if self._state_error is not None:
+            raise self._state_error
+        return self._state
 
     def recover(self) -> None:
         """Stop the fingers and reconnect (the hand has no error state to clear)."""
-        if self._gripper is not None:
+        gripper = self._gripper
+        self.close()
+        if gripper is not None:
             try:
                 with self._errors("stop"):
-                    self._gripper.stop()
+                    gripper.stop()
             except DeviceError:
                 pass
-        self._gripper = None
         self.connect()
 
 

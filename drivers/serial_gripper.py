@@ -83,6 +83,7 @@ class SerialGripper:
         self._port: Any = None
         self._lock = threading.Lock()
         self._serial_exc: tuple[type[BaseException], ...] = (OSError,)
+        self._last_state: GripperState | None = None
         self.requests = 0  # Modbus transactions sent (for health reporting)
         self.retried = 0  # transactions that needed a retry
 
@@ -158,6 +159,7 @@ class SerialGripper:
             position = 255 if width is None else self.width_to_register(width)
         else:
             position = self.width_to_register(self.config.stroke if width is None else width)
+        self._last_state = None  # the next read_state must see the new command
         self.write_action(
             R_ACT | R_GTO,
             position,
@@ -166,10 +168,18 @@ class SerialGripper:
         )
 
     def read_state(self) -> GripperState:
-        """Read the status registers: width from the finger position, grasped from gOBJ."""
+        """Width from the finger position, grasped from gOBJ; a read younger than state_period is reused.
+
+        The state poller asks at the joint-state rate (100+ Hz); the RS-485 line needs a few ms
+        per transaction, so reads are rate-limited to leave room for commands.
+        """
+        last = self._last_state
+        if last is not None and self._clock.now() - last.stamp < self.config.state_period:
+            return last
         status = self.read_status()
         grasped = status["gOBJ"] in (OBJ_OPENING_CONTACT, OBJ_CLOSING_CONTACT)
-        return GripperState(self._clock.now(), self.register_to_width(status["gPO"]), grasped)
+        self._last_state = GripperState(self._clock.now(), self.register_to_width(status["gPO"]), grasped)
+        return self._last_state
 
     def read_status(self) -> dict[str, int]:
         """The decoded input registers (gACT, gGTO, gSTA, gOBJ, gFLT, gPR, gPO, gCU)."""

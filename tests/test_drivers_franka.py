@@ -192,12 +192,39 @@ def test_hand_homes_then_grasps_and_opens(franky):
     name, args, kwargs = g.calls[-1]
     assert name == "grasp_async" and args == (0.0, 0.04, 25.0) and kwargs["epsilon_outer"] == 1.0
     assert hand.wait(1.0) is True
-    st = hand.read_state()
-    assert st.grasped and st.width == pytest.approx(0.02)
+    st = wait_for(hand, lambda s: s.grasped)
+    assert st.width == pytest.approx(0.02)
     hand.command(closed=False)
     assert g.calls[-1][:2] == ("move_async", (0.08, 0.04))
-    st = hand.read_state()
-    assert not st.grasped and st.width == pytest.approx(0.08)
+    st = wait_for(hand, lambda s: not s.grasped)
+    assert st.width == pytest.approx(0.08)
+    hand.close()
+    hand.close()
+
+
+def wait_for(hand, cond, timeout: float = 1.0):
+    """The hand's state once ``cond`` holds (the state reader runs on its own thread)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        st = hand.read_state()
+        if cond(st) or time.monotonic() > deadline:
+            return st
+        time.sleep(0.002)
+
+
+def test_hand_state_errors_surface_and_recover(franky):
+    hand = create_gripper(FrankaHandConfig(host="172.16.0.2"), name="h")
+    hand.connect()
+    g = franky.Gripper.instances[0]
+    g.fail = True
+    time.sleep(0.05)
+    with pytest.raises(DeviceError, match="GripperException"):
+        hand.read_state()
+    g.fail = False
+    hand.recover()
+    assert ("stop", (), {}) in g.calls
+    assert not hand.read_state().grasped
+    hand.close()
 
 
 def test_hand_needs_a_host(franky):

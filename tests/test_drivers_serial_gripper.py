@@ -21,6 +21,7 @@ def sim(monkeypatch):
 
 
 def make(**kw) -> SerialGripper:
+    kw.setdefault("state_period", 0.0)
     cfg = SerialGripperConfig(port="/dev/ttyUSB0", **kw)
     return create_gripper(cfg, name="left", clock=SimClock())
 
@@ -62,6 +63,22 @@ def test_open_and_grasp_map_units_to_registers(sim):
     st = g.read_state()
     assert st.grasped  # fingers stopped on the object (gOBJ = 2)
     assert st.width == pytest.approx(g.register_to_width(200))
+
+
+def test_state_reads_are_rate_limited(sim):
+    clock = SimClock()
+    g = SerialGripper(SerialGripperConfig(port="/dev/ttyUSB0", state_period=0.02), name="g", clock=clock)
+    g.connect()
+    reads = sim.reads
+    g.read_state()
+    g.read_state()
+    assert sim.reads == reads + 1
+    clock.sleep_until(clock.now() + 0.03)
+    g.read_state()
+    assert sim.reads == reads + 2
+    g.command(closed=True)
+    assert g.read_state().grasped  # a command invalidates the cached state
+    assert sim.reads == reads + 3
 
 
 def test_crc_error_is_retried(sim):

@@ -231,6 +231,7 @@ class Gripper:
         self.max_width = 0.08
         self.width = 0.0
         self.is_grasped = False
+        self.fail = False  # state reads raise GripperException while set
         Gripper.instances.append(self)
 
     def homing(self) -> bool:
@@ -261,6 +262,9 @@ class Gripper:
 
     @property
     def state(self) -> GripperState:
+        time.sleep(0.001)  # libfranka waits for the hand's next state packet
+        if self.fail:
+            raise GripperException("libfranka gripper: UDP receive: Timeout")
         return GripperState(self.width, self.max_width, self.is_grasped)
 
 
