@@ -132,6 +132,18 @@ class TimedSegment:
         what = {"approach": "approach to", "move": "move to", "dwell": "dwell at"}[self.kind]
         return f"segment {self.index} ({what} waypoint {self.to_waypoint})"
 
+    def arm_end_times(self) -> tuple[float, float]:
+        """(left, right) s from segment start at which each arm's last joint comes to rest (ruckig profiles)."""
+        if self.trajectory is None:
+            return 0.0, 0.0
+        ends = np.zeros(N)
+        for d, prof in enumerate(self.trajectory.profiles[-1]):  # rest to rest: a single section
+            t, j = np.asarray(prof.t), np.asarray(prof.j)
+            a, v = np.asarray(prof.a)[:-1], np.asarray(prof.v)[:-1]
+            moving = np.flatnonzero((np.abs(j) > 0) | (np.abs(a) > 0) | (np.abs(v) > 0))
+            ends[d] = np.cumsum(t)[moving[-1]] if len(moving) else 0.0
+        return float(ends[:7].max()), float(ends[7:].max())
+
     def state(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """q, dq, ddq, each (len(t), 14), at times ``t`` (s, from segment start, clamped)."""
         t = np.clip(np.asarray(t, dtype=np.float64), 0.0, self.actual)
