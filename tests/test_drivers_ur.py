@@ -51,9 +51,8 @@ def test_servoj_stream_resamples_at_servo_rate(rtde):
     a.connect()
     assert "control.__init__(250)" in rtde.sim_for("192.168.1.10").calls
     m = ramp(0.2, 0.2)
-    t0 = time.monotonic()
     a.start_motion(m)
-    assert time.monotonic() - t0 < 0.05  # returns at once
+    assert not a.wait_motion(0.0)  # returns at once, streaming in the background
     assert a.wait_motion(timeout=5.0)
     calls = rtde.sim_for("192.168.1.10").servo_calls
     # 0.2 s at 250 Hz -> 51 set-points, plus a lookahead (0.05 s = 13 periods) holding the end
@@ -63,7 +62,7 @@ def test_servoj_stream_resamples_at_servo_rate(rtde):
     assert dt == pytest.approx(1 / 250) and lookahead == 0.05 and gain == 500.0
     assert calls[-1][1][0] == pytest.approx(0.2)
     stamps = np.array([c[0] for c in calls])
-    assert stamps[-1] - stamps[0] == pytest.approx((len(calls) - 1) / 250, rel=0.25)  # paced by waitPeriod
+    assert stamps[-1] - stamps[0] >= 0.95 * (len(calls) - 1) / 250  # paced by waitPeriod, never faster
     assert any(c.startswith("servoStop") for c in rtde.sim_for("192.168.1.10").calls)
     assert a.read_state().q[0] == pytest.approx(0.2)
 
@@ -77,7 +76,7 @@ def test_two_arms_stream_concurrently(rtde):
     right.start_motion(m)
     assert left.wait_motion(5.0) and right.wait_motion(5.0)
     first = [rtde.sim_for(h).servo_calls[0][0] for h in ("192.168.1.10", "192.168.1.11")]
-    assert abs(first[0] - first[1]) < 0.02
+    assert abs(first[0] - first[1]) < 0.1
 
 
 def test_protective_stop_then_recover_and_retry(rtde):
