@@ -87,3 +87,54 @@ def splat_mask(
     k = np.ones((3, 3), np.uint8)
     mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, k)
     return mask.astype(bool)
+
+
+def farthest_point_sampling(points: np.ndarray, n: int, seeds: np.ndarray | None = None) -> np.ndarray:
+    """Indices (n,) into points (M, 3) chosen greedily farthest from the seeds (S, 3) and each other.
+
+    The running min-distance is updated incrementally (O(n * M), no M x M matrix). Without seeds,
+    sampling starts at the point farthest from the centroid (deterministic).
+    """
+    M = len(points)
+    n = min(n, M)
+    out = np.empty(n, np.int64)
+    if n == 0:
+        return out
+    if seeds is not None and len(seeds):
+        diff = points[:, None, :] - np.asarray(seeds, np.float64)[None, :, :]
+        dmin = np.einsum("msk,msk->ms", diff, diff).min(axis=1)
+    else:
+        c = points - points.mean(axis=0)
+        dmin = np.einsum("mk,mk->m", c, c)
+    for i in range(n):
+        j = int(np.argmax(dmin))
+        out[i] = j
+        d = points - points[j]
+        dmin = np.minimum(dmin, np.einsum("mk,mk->m", d, d))
+    return out
+
+
+def object_image(
+    cloud: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, pixel_m: float, radius_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Mask of the cloud in a scaled, cropped virtual image whose pixel spans about ``pixel_m`` at the object.
+
+    cloud: (N, 3) float64 m world; K (3, 3); T_world_cam (4, 4). The image is only ever
+    scaled down (factor <= 1) and cropped to the cloud's bounding box plus a margin.
+    Returns (mask (h, w) bool, Kc (3, 3) camera matrix of that image, uv (N, 2) cloud pixels (col, row)
+    in it, pixel size in metres at the median object depth).
+    """
+    uv, z = project_points(cloud, K, T_world_cam)
+    zmed = float(np.median(z)) if len(z) else 1.0
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    s = float(min(1.0, pixel_m * f / zmed))
+    Ks = scale_intrinsics(K, s)
+    uvs = (uv + 0.5) * s - 0.5
+    pad = int(np.ceil(radius_m * f * s / zmed)) + 3
+    c0, r0 = np.floor(uvs.min(axis=0)).astype(int) - pad if len(uvs) else (0, 0)
+    c1, r1 = np.ceil(uvs.max(axis=0)).astype(int) + pad + 1 if len(uvs) else (1, 1)
+    Ks[0, 2] -= c0
+    Ks[1, 2] -= r0
+    uvs = uvs - np.array([c0, r0])
+    mask = splat_mask(cloud, Ks, T_world_cam, (int(r1 - r0), int(c1 - c0)), radius_m)
+    return mask, Ks, uvs, zmed / (f * s)

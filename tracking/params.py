@@ -20,6 +20,7 @@ class TrackingParams:
       lift_stride: foreground pixels are lifted every this many rows and columns, px.
       voxel_m: voxel size of the down-sampled object cloud, m (3-5 mm).
       dbscan_eps_m, dbscan_min_points: DBSCAN neighbourhood radius (m) and core size.
+      dbscan_voxel_m: DBSCAN runs on the cloud voxelised this coarsely (labels spread back), m.
       min_cluster_points: clusters smaller than this (voxels) are noise.
       cluster_keep_fraction, cluster_keep_gap_m: at initialisation also keep clusters at least this
         fraction of the largest and within this gap of it (an object split by a gripper), m.
@@ -64,7 +65,8 @@ class TrackingParams:
     lift_stride: int = 2
     voxel_m: float = 0.004
     dbscan_eps_m: float = 0.012
-    dbscan_min_points: int = 4
+    dbscan_min_points: int = 3
+    dbscan_voxel_m: float = 0.008
     min_cluster_points: int = 10
     cluster_keep_fraction: float = 0.2
     cluster_keep_gap_m: float = 0.08

@@ -145,6 +145,15 @@ def dbscan_labels(points: np.ndarray, eps_m: float, min_points: int) -> np.ndarr
     return np.asarray(pcd.cluster_dbscan(eps=eps_m, min_points=min_points, print_progress=False), np.int64)
 
 
+def coarse_dbscan_labels(points: np.ndarray, params: TrackingParams) -> np.ndarray:
+    """DBSCAN labels (N,) int64 of points (N, 3) m computed on a ``dbscan_voxel_m`` grid, spread by nearest voxel."""
+    if len(points) == 0 or params.dbscan_voxel_m <= params.voxel_m:
+        return dbscan_labels(points, params.dbscan_eps_m, params.dbscan_min_points)
+    coarse = voxel_downsample(points, params.dbscan_voxel_m)
+    lab = dbscan_labels(coarse, params.dbscan_eps_m, params.dbscan_min_points)
+    return lab[cKDTree(coarse).query(points)[1]]
+
+
 def select_largest_clusters(points: np.ndarray, labels: np.ndarray, params: TrackingParams) -> np.ndarray:
     """Largest cluster plus clusters of comparable size close to it (an object split by a gripper).
 
@@ -195,7 +204,7 @@ def _cluster(
     sub[::s, ::s] = fg[::s, ::s]
     pts, _ = depth_to_points(depth, K, T_world_cam, sub)
     vox = voxel_downsample(pts, params.voxel_m)
-    labels = dbscan_labels(vox, params.dbscan_eps_m, params.dbscan_min_points)
+    labels = coarse_dbscan_labels(vox, params)
     n_clusters = int(labels.max()) + 1 if len(labels) else 0
     if prev_keypoints is None:
         obj = select_largest_clusters(vox, labels, params)

@@ -1,0 +1,268 @@
+"""Anchor detection (paper section III-D): skeleton leaves and junctions (1D), contour corners and sides (2D).
+
+Both work on the segmented cloud only: it is projected into a scaled virtual image (``object_image``),
+the image-space result is lifted back to 3D from the cloud.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from tracking.geometry import object_image
+from tracking.params import TrackingParams
+from tracking.skeleton import JUNCTION, LEAF, skeleton_graph
+
+BOUNDARY = 2
+CORNER = 3
+
+
+@dataclass(frozen=True)
+class Skeleton3D:
+    """A 1D object's skeleton lifted to 3D.
+
+    nodes: (K, 3) float64 m world (leaf anchors pushed to the cloud's tips); kinds: (K,) LEAF / JUNCTION;
+    branches: list of (node_a, node_b, polyline (M, 3) float64 m from a to b, ends = the nodes);
+    component: (K,) int64 connected component per node, 0 = largest.
+    """
+
+    nodes: np.ndarray
+    kinds: np.ndarray
+    branches: list[tuple[int, int, np.ndarray]]
+    component: np.ndarray
+
+
+@dataclass(frozen=True)
+class Contour3D:
+    """A 2D object's boundary: grid boundary nodes and the four measured side lengths.
+
+    sides: four (n_i, 3) float64 m polylines corner to corner: top (c0->c1, cols), right (c1->c2, rows),
+    bottom (c3->c2, cols), left (c0->c3, rows); sides_uv: the same in image pixels (n_i, 2);
+    lengths: (4,) m measured along the dense contour.
+    """
+
+    sides: list[np.ndarray]
+    sides_uv: list[np.ndarray]
+    lengths: np.ndarray
+    Kc: np.ndarray
+    cloud_uv: np.ndarray
+
+
+def lift_pixels(pix_uv: np.ndarray, cloud_uv: np.ndarray, cloud: np.ndarray, radius_px: float, k: int) -> np.ndarray:
+    """Robust 3D of image points: median of up to k cloud points projected within radius_px, else the nearest.
+
+    pix_uv: (P, 2) pixels (col, row); cloud_uv: (N, 2) pixels of cloud (N, 3) m. Returns (P, 3) float64 m.
+    """
+    if len(pix_uv) == 0:
+        return np.zeros((0, 3))
+    tree = cKDTree(cloud_uv)
+    k = min(k, len(cloud))
+    d, idx = tree.query(pix_uv, k=k, distance_upper_bound=radius_px)
+    d, idx = d.reshape(len(pix_uv), k), idx.reshape(len(pix_uv), k)
+    nb = np.where(np.isfinite(d)[..., None], cloud[np.minimum(idx, len(cloud) - 1)], np.nan)
+    none = ~np.isfinite(d[:, 0])
+    nb[none, 0] = cloud[tree.query(pix_uv[none])[1]]
+    return np.nanmedian(nb, axis=1)
+
+
+def _smooth_polyline(p: np.ndarray, window: int) -> np.ndarray:
+    """Moving average (window samples) of a polyline (M, 3), ends kept."""
+    if len(p) <= 2 or window <= 1:
+        return p
+    w = min(window, len(p) - (1 - len(p) % 2))
+    w = w if w % 2 == 1 else w - 1
+    if w <= 1:
+        return p
+    h = w // 2
+    pad = np.concatenate([np.repeat(p[:1], h, 0), p, np.repeat(p[-1:], h, 0)])
+    c = np.cumsum(np.concatenate([np.zeros((1, 3)), pad]), axis=0)
+    out = (c[w:] - c[:-w]) / w
+    out[0], out[-1] = p[0], p[-1]
+    return out
+
+
+def _extend_leaf(leaf: np.ndarray, inward: np.ndarray, tree: cKDTree, cloud: np.ndarray, reach: float) -> np.ndarray:
+    """Push a leaf (3,) m outward along -inward direction to the cloud's tip within ``reach`` m."""
+    t = leaf - inward
+    n = np.linalg.norm(t)
+    if n < 1e-9:
+        return leaf
+    t /= n
+    idx = tree.query_ball_point(leaf, reach)
+    if not idx:
+        return leaf
+    q = cloud[idx] - leaf
+    s = q @ t
+    lateral = np.linalg.norm(q - s[:, None] * t, axis=1)
+    ok = (s > 0) & (lateral < 0.5 * reach)
+    if not ok.any():
+        return leaf
+    tip = ok & (s > s[ok].max() - 0.004)
+    return cloud[idx][tip].mean(axis=0)
+
+
+def skeleton_3d(
+    cloud: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, params: TrackingParams, all_components: bool
+) -> Skeleton3D:
+    """Leaves, junctions and branches of a 1D object's cloud (N, 3) float64 m, world frame.
+
+    Projects the cloud to a mask, skeletonises, builds the MST, prunes spurs, merges junctions,
+    lifts branches robustly to 3D and pushes leaves to the cloud's tips. ``all_components`` keeps
+    every skeleton component (tracking) instead of the largest (initialisation).
+    """
+    empty = Skeleton3D(np.zeros((0, 3)), np.zeros(0, np.int64), [], np.zeros(0, np.int64))
+    if len(cloud) < 3:
+        return empty
+    mask, _, uv, px_m = object_image(cloud, K, T_world_cam, params.mask_pixel_m, params.voxel_m)
+    spur_px = params.spur_length_m / px_m
+    g = skeleton_graph(mask, spur_px, params.junction_merge_m / px_m, spur_px)
+    if len(g.node_rc) == 0:
+        return empty
+    keep = np.ones(len(g.node_rc), bool) if all_components else g.component == 0
+    new_id = np.cumsum(keep) - 1
+    branches_px = [(new_id[a], new_id[b], p) for a, b, p in g.branches if keep[a] and keep[b]]
+    node_rc = g.node_rc[keep]
+    kinds = g.node_kind[keep]
+    allpix = np.concatenate([node_rc] + [p for _, _, p in branches_px])[:, ::-1]
+    lifted = lift_pixels(allpix, uv, cloud, params.lift_radius_px, params.lift_k)
+    nodes = lifted[: len(node_rc)].copy()
+    off = len(node_rc)
+    win = max(3, int(round(0.01 / px_m)))
+    polys = []
+    for a, b, p in branches_px:
+        poly = lifted[off : off + len(p)].copy()
+        off += len(p)
+        poly[0], poly[-1] = nodes[a], nodes[b]
+        polys.append((int(a), int(b), _smooth_polyline(poly, win)))
+    tree = cKDTree(cloud)
+    ext = nodes.copy()
+    for a, b, poly in polys:
+        for end, inner in ((a, poly[min(len(poly) - 1, win)]), (b, poly[max(0, len(poly) - 1 - win)])):
+            if kinds[end] == LEAF:
+                ext[end] = _extend_leaf(nodes[end], inner, tree, cloud, params.end_extend_m)
+    out = []
+    for a, b, poly in polys:
+        poly = poly.copy()
+        poly[0], poly[-1] = ext[a], ext[b]
+        out.append((a, b, poly))
+    return Skeleton3D(ext, kinds, out, g.component[keep])
+
+
+def detect_anchors_1d(
+    cloud: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, params: TrackingParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame 1D anchors: positions (A, 3) float64 m and kinds (A,) LEAF / JUNCTION, all components."""
+    sk = skeleton_3d(cloud, K, T_world_cam, params, all_components=True)
+    return sk.nodes, sk.kinds
+
+
+def _resample(poly: np.ndarray, n: int) -> np.ndarray:
+    """n points (n, D) equally spaced by arc length along a polyline (M, D)."""
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    if s[-1] <= 0:
+        return np.repeat(poly[:1], n, axis=0)
+    t = np.linspace(0.0, s[-1], n)
+    return np.stack([np.interp(t, s, poly[:, i]) for i in range(poly.shape[1])], axis=1)
+
+
+def _polyline_length(p: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+
+def contour_3d(cloud: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, params: TrackingParams) -> Contour3D | None:
+    """Outer contour of a 2D object's cloud (N, 3) m split at four corners into lifted sides; None if no contour.
+
+    Corners are the contour points nearest the minimum-area rectangle's corners; corner 0 is the
+    one nearest the image's top-left, sides follow the contour order.
+    """
+    if len(cloud) < 10:
+        return None
+    mask, Kc, uv, px_m = object_image(cloud, K, T_world_cam, params.mask_pixel_m, params.voxel_m)
+    cs, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if not cs:
+        return None
+    c = max(cs, key=cv2.contourArea).reshape(-1, 2).astype(np.float64)
+    if len(c) < 8:
+        return None
+    box = cv2.boxPoints(cv2.minAreaRect(c.astype(np.float32)))
+    ci = np.array([int(np.argmin(np.linalg.norm(c - b, axis=1))) for b in box])
+    ci = np.sort(np.unique(ci))
+    if len(ci) < 4:
+        return None
+    start = int(np.argmin(c[ci].sum(axis=1)))
+    ci = np.roll(ci, -start)
+    c = np.roll(c, -ci[0], axis=0)
+    ci = (ci - ci[0]) % len(c)
+    ci = np.append(ci, len(c))
+    cc = np.concatenate([c, c[:1]])
+    dense = [cc[ci[k] : ci[k + 1] + 1] for k in range(4)]
+    sides_uv = [dense[0], dense[1], dense[2][::-1], dense[3][::-1]]
+    tree_uv = cKDTree(uv)
+    lifted = [cloud[tree_uv.query(s)[1]] for s in sides_uv]
+    lengths = np.array([_polyline_length(_smooth_polyline(p, max(3, int(0.01 / px_m)))) for p in lifted])
+    return Contour3D(lifted, sides_uv, lengths, Kc, uv)
+
+
+def grid_boundary_uv(ct: Contour3D, rows: int, cols: int) -> np.ndarray:
+    """Coons-patch grid (rows, cols, 2) in the contour image from its four sides resampled by arc length."""
+    top = _resample(ct.sides_uv[0], cols)
+    right = _resample(ct.sides_uv[1], rows)
+    bottom = _resample(ct.sides_uv[2], cols)
+    left = _resample(ct.sides_uv[3], rows)
+    u = np.linspace(0.0, 1.0, cols)[None, :, None]
+    v = np.linspace(0.0, 1.0, rows)[:, None, None]
+    c00, c01, c10, c11 = top[0], top[-1], bottom[0], bottom[-1]
+    ruled = (1 - v) * top[None] + v * bottom[None] + (1 - u) * left[:, None] + u * right[:, None]
+    bil = (1 - u) * (1 - v) * c00 + u * (1 - v) * c01 + (1 - u) * v * c10 + u * v * c11
+    return ruled - bil
+
+
+def boundary_indices(rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
+    """Grid boundary keypoint indices (2R+2C-4,) row-major, and their kinds CORNER / BOUNDARY."""
+    idx = np.arange(rows * cols).reshape(rows, cols)
+    b = np.zeros((rows, cols), bool)
+    b[0, :] = b[-1, :] = b[:, 0] = b[:, -1] = True
+    out = idx[b]
+    corners = {0, cols - 1, (rows - 1) * cols, rows * cols - 1}
+    kinds = np.array([CORNER if i in corners else BOUNDARY for i in out], np.int64)
+    return out, kinds
+
+
+def lift_grid(ct: Contour3D, cloud: np.ndarray, rows: int, cols: int) -> np.ndarray:
+    """Grid keypoints (rows*cols, 3) m: Coons grid in the image lifted by the nearest projected cloud point."""
+    g = grid_boundary_uv(ct, rows, cols).reshape(-1, 2)
+    return cloud[cKDTree(ct.cloud_uv).query(g)[1]]
+
+
+def detect_anchors_2d(
+    cloud: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, params: TrackingParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame 2D anchors: grid boundary points (A, 3) float64 m and kinds (A,) CORNER / BOUNDARY."""
+    ct = contour_3d(cloud, K, T_world_cam, params)
+    if ct is None:
+        return np.zeros((0, 3)), np.zeros(0, np.int64)
+    R, C = params.grid_rows, params.grid_cols
+    X = lift_grid(ct, cloud, R, C)
+    bi, kinds = boundary_indices(R, C)
+    return X[bi], kinds
+
+
+__all__ = [
+    "BOUNDARY",
+    "CORNER",
+    "JUNCTION",
+    "LEAF",
+    "Contour3D",
+    "Skeleton3D",
+    "boundary_indices",
+    "contour_3d",
+    "detect_anchors_1d",
+    "detect_anchors_2d",
+    "lift_grid",
+    "lift_pixels",
+    "skeleton_3d",
+]
