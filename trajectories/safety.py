@@ -275,13 +275,17 @@ def check_trajectory(timed: TimedProgram, times: np.ndarray, q: np.ndarray, dq: 
                 f"{arm} TCP {axes[d]} = {tcp[:, a, d].min():.3f} m is below the workspace bound {lo[d]:.3f}")
             add("workspace", tcp[:, a, d] > hi[d],
                 f"{arm} TCP {axes[d]} = {tcp[:, a, d].max():.3f} m is above the workspace bound {hi[d]:.3f}")
-    # links against the table top
+    # links against the table top (finger pads are several boxes: one message per link)
     names = [g.name for g in dm.geom.geometryObjects]
+    low: dict[str, np.ndarray] = {}
     for g in dm.table_geoms:
-        p = dm.hull_points[g]
-        z = np.einsum("kj,pj->kp", place[:, g, 2, :3], p).min(1) + place[:, g, 2, 3]
+        z = np.einsum("kj,pj->kp", place[:, g, 2, :3], dm.hull_points[g]).min(1) + place[:, g, 2, 3]
+        key = _pretty(names[g])
+        low[key] = np.minimum(low[key], z) if key in low else z
+    for key, z in low.items():
         add("table", z < workspace.table_z + dm.margin,
-            f"{_pretty(names[g])} reaches z = {z.min():.3f} m, below the table top {workspace.table_z:.3f}")
+            f"{key} reaches z = {z.min():.3f} m, below the table top {workspace.table_z:.3f} m "
+            f"(+{dm.margin * 1000:.0f} mm margin)")
     # collisions: bounding spheres first, coal on the close pairs only
     centres = np.einsum("kgij,gj->kgi", place[:, :, :3, :3], dm.sphere_center) + place[:, :, :3, 3]
     i, j = dm.pairs[:, 0], dm.pairs[:, 1]
@@ -291,9 +295,12 @@ def check_trajectory(timed: TimedProgram, times: np.ndarray, q: np.ndarray, dq: 
     for k in np.flatnonzero(close.any(1)):
         hit = dm.collide(q[k], np.flatnonzero(close[k]))
         hits[k, hit] = True
+    merged: dict[tuple[str, str, str], np.ndarray] = {}
     for p in np.flatnonzero(hits.any(0)):
-        a, b = names[dm.pairs[p, 0]], names[dm.pairs[p, 1]]
-        add(dm.pair_kind[p], hits[:, p], f"{_pretty(a)} collides with {_pretty(b)}")
+        key = (dm.pair_kind[p], _pretty(names[dm.pairs[p, 0]]), _pretty(names[dm.pairs[p, 1]]))
+        merged[key] = merged[key] | hits[:, p] if key in merged else hits[:, p]
+    for (kind, a, b), mask in merged.items():
+        add(kind, mask, f"{a} collides with {b}")
     out.sort(key=lambda v: (v.time, v.kind))
     return out
 

@@ -268,11 +268,22 @@ def _calculate(q0: np.ndarray, q1: np.ndarray, vel: np.ndarray, acc: np.ndarray,
     inp.min_position = lo.tolist()
     inp.max_position = hi.tolist()
     inp.synchronization = ruckig.Synchronization.Phase
-    traj = ruckig.Trajectory(N)
-    res = ruckig.Ruckig(N).calculate(inp, traj)
-    if res not in (ruckig.Result.Working, ruckig.Result.Finished):
-        raise ValueError(f"ruckig could not time the segment: {res.name}")
-    return traj
+    otg = ruckig.Ruckig(N)
+    # ruckig 0.19 can fail on exact boundary cases between profile shapes ("error in step 1"):
+    # nudging the limits by a relative 1e-7..1e-5 (far below anything measurable) gets past them
+    for eps in (0.0, -1e-7, 1e-7, -1e-5, 1e-5):
+        inp.max_acceleration = (acc * (1 + eps)).tolist()
+        inp.max_jerk = (jerk * (1 + eps)).tolist()
+        traj = ruckig.Trajectory(N)
+        try:
+            res = otg.calculate(inp, traj)
+        except ruckig.RuckigError as e:
+            err = str(e).strip().splitlines()[0]
+            continue
+        if res in (ruckig.Result.Working, ruckig.Result.Finished):
+            return traj
+        err = res.name
+    raise ValueError(f"ruckig could not time the segment: {err}")
 
 
 def time_segment(q0: np.ndarray, q1: np.ndarray, duration: float,
