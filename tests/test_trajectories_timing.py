@@ -133,3 +133,34 @@ def test_library_times_exactly_at_every_speed(name):
         timed = time_program(prog, speed)
         assert not timed.limited_segments()
         assert abs(timed.duration - (len(prog.waypoints) - 1) * speed.segment_duration) < 1e-3
+
+
+limits_lo = joint_limits()["lower"] + 0.05
+limits_hi = joint_limits()["upper"] - 0.05
+
+
+def test_random_segments_property():
+    """Any in-limit segment at any speed: ruckig succeeds, duration exact or reported longer, within limits."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from trajectories.timing import TimingLimits, time_segment
+
+    lim = TimingLimits.panda()
+    unit = st.lists(st.floats(0.0, 1.0), min_size=14, max_size=14)
+
+    @settings(max_examples=150, deadline=None, derandomize=True)
+    @given(unit, unit, st.sampled_from([4.0, 2.0, 1.0, 1.25, 1.5]), st.floats(0.001, 1.0))
+    def check(a, b, duration, reach):
+        lo, hi = np.tile(limits_lo, 2), np.tile(limits_hi, 2)
+        q0 = lo + np.asarray(a) * (hi - lo)
+        q1 = q0 + reach * (lo + np.asarray(b) * (hi - lo) - q0)
+        traj, sa, sj = time_segment(q0, q1, duration, lim)
+        assert traj.duration <= duration + 1e-6 or (sa == 1.0 and sj == 1.0)
+        assert traj.duration > duration - 1e-3 or np.max(np.abs(q1 - q0)) < 1e-3
+        q, dq, _ = traj.at_time(traj.duration)
+        np.testing.assert_allclose(q, q1, atol=1e-9)
+        peak = np.max([np.abs(traj.at_time(t)[1]) / lim.velocity for t in np.linspace(0, traj.duration, 21)])
+        assert peak <= 1 + 1e-9
+
+    check()
