@@ -28,6 +28,7 @@ from orchestrator import __version__
 from orchestrator.bus import Bus
 from orchestrator.config import Config, ObjectConfig
 from orchestrator.plan import RunItem, build_plan
+from orchestrator.programs import ProgramRejected, plan_motion
 from orchestrator.progress import Progress
 from orchestrator.recorder import Recorder, recover_active
 from orchestrator.wire import decode_json, encode_frame, encode_json
@@ -357,8 +358,6 @@ class Session:
             raise DeviceError(f"camera: no frame after {retries} attempts and a reconnect: {last}; {e}") from e
 
     def _run_item(self, item: RunItem, station: Station) -> None:
-        from orchestrator.programs import plan_motion
-
         assert self._recorder is not None
         plan = self.config.plan
         motion = plan_motion(item, station, plan.fast_duration)
@@ -500,7 +499,3 @@ class Session:
                 "u (12,) = [left TCP xyz m, left rotvec rad, right TCP xyz m, right rotvec rad], world frame"
             ),
         }
-
-
-class ProgramRejected(RuntimeError):
-    """A program failed its checks (limits, collisions, workspace) before the arms moved."""

@@ -1,0 +1,48 @@
+"""Start and stop the tracking worker as a child process next to a session."""
+
+from __future__ import annotations
+
+import json
+import logging
+import subprocess
+import sys
+from pathlib import Path
+
+from orchestrator.bus import local_endpoints
+from orchestrator.config import Config
+
+log = logging.getLogger(__name__)
+
+
+class WorkerProcess:
+    """A ``trackdeform worker`` child that connects to this session's zenoh endpoints."""
+
+    def __init__(self, proc: subprocess.Popen, log_path: Path) -> None:
+        self.proc = proc
+        self.log_path = log_path
+
+    def stop(self, timeout: float = 10.0) -> int | None:
+        """SIGTERM, then SIGKILL after ``timeout`` s; returns the exit code."""
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                log.warning("tracking worker did not stop in %.0f s; killing it", timeout)
+                self.proc.kill()
+                self.proc.wait()
+        return self.proc.returncode
+
+
+def start_worker(config: Config, out_dir: Path) -> WorkerProcess:
+    """Launch the worker with the session's config (as JSON), connected to its listen endpoints."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    cfg_path = out_dir / "worker_config.json"
+    cfg_path.write_text(json.dumps(config.model_dump(mode="json"), indent=2))
+    log_path = out_dir / "worker.log"
+    cmd = [sys.executable, "-m", "tracking.worker", str(cfg_path)]
+    for e in local_endpoints(config.bus.listen):
+        cmd += ["--connect", e]
+    with open(log_path, "ab") as logf:
+        proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+    return WorkerProcess(proc, log_path)
