@@ -44,8 +44,12 @@ class TrackingParams:
     Solver (Algorithm 1)
       init_iterations, track_iterations: Gauss-Seidel sweeps at initialisation / per tracked frame.
       use_anchors, use_edge_projection, use_cloud_projection: ablation switches.
+      surface_k: cloud projection = nearest point when <= 1 (the paper), else nearest point plus the
+        tangential offset on the local PCA plane of this many neighbours (no snapping to voxel centres).
+      surface_slide_m: largest tangential offset from the nearest point, m.
     Tracking (Algorithm 2)
-      anchor_gate_m: Hungarian matches of re-detected to previous anchors farther than this are rejected, m.
+      anchor_gate_m: Hungarian matches of re-detected to predicted anchors farther than this are rejected, m.
+      anchor_regate_m: leftover anchors and detections are matched again within this wider gate, m.
       grasp_gate_m: a TCP farther than this from every keypoint holds nothing, m.
       causal_window, symmetric_window: moving-average windows, frames.
       min_object_points: fewer segmented points than this is a bad frame.
@@ -94,8 +98,11 @@ class TrackingParams:
     use_anchors: bool = True
     use_edge_projection: bool = True
     use_cloud_projection: bool = True
+    surface_k: int = 8
+    surface_slide_m: float = 0.004
 
     anchor_gate_m: float = 0.05
+    anchor_regate_m: float = 0.15
     grasp_gate_m: float = 0.05
     causal_window: int = 3
     symmetric_window: int = 5

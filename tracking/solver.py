@@ -53,6 +53,27 @@ def project_edges(
         X[j] -= wj[:, None] * s
 
 
+def project_to_cloud(X: np.ndarray, tree: cKDTree, k: int, max_slide_m: float) -> np.ndarray:
+    """Project points X (n, 3) m onto the cloud: nearest point (k <= 1), or nearest point plus the tangential
+    offset along the local surface (PCA plane of k neighbours) clamped to ``max_slide_m``, which lets
+    keypoints slide below the cloud's point spacing. Returns (n, 3) float64 m."""
+    pts = tree.data
+    if k <= 1:
+        return pts[tree.query(X)[1]]
+    k = min(k, tree.n)
+    _, nn = tree.query(X, k=k)
+    nb = pts[nn]
+    c = nb - nb.mean(axis=1, keepdims=True)
+    _, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", c, c))
+    normal = vec[:, :, 0]
+    p = nb[:, 0]
+    off = X - p
+    off -= np.einsum("nk,nk->n", off, normal)[:, None] * normal
+    n = np.linalg.norm(off, axis=1, keepdims=True)
+    off *= np.minimum(1.0, max_slide_m / np.maximum(n, 1e-12))
+    return p + off
+
+
 def solve_keypoints(
     X0: np.ndarray,
     edges: np.ndarray,
@@ -87,13 +108,11 @@ def solve_keypoints(
     tree = None
     if params.use_cloud_projection:
         tree = cloud if isinstance(cloud, cKDTree) else (cKDTree(cloud) if len(cloud) else None)
-    pts = tree.data if tree is not None else None
     for _ in range(iterations):
         if params.use_edge_projection and len(edges):
             project_edges(X, edges, rest, inv_mass, classes)
         if tree is not None:
-            _, nn = tree.query(X[free])
-            X[free] = pts[nn]
+            X[free] = project_to_cloud(X[free], tree, params.surface_k, params.surface_slide_m)
         if use_anchors:
             X[anchor_idx] = anchor_pos
     return X

@@ -1,0 +1,74 @@
+"""Evaluation metrics as the paper defines them (millimetres), plus ground-truth errors for simulation."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
+
+
+def edge_lengths(X: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Edge lengths (E,) m of keypoints X (N, 3) m over edges (E, 2)."""
+    return np.linalg.norm(X[edges[:, 0]] - X[edges[:, 1]], axis=1)
+
+
+def edge_rmse_mm(X: np.ndarray, edges: np.ndarray, rest: np.ndarray) -> float:
+    """Abs: RMSE (mm) over edges of |x_i - x_j| - d_ij; X (N, 3) m, edges (E, 2), rest (E,) m."""
+    if len(edges) == 0:
+        return 0.0
+    return float(1e3 * np.sqrt(np.mean((edge_lengths(X, edges) - rest) ** 2)))
+
+
+def chamfer_mm(X: np.ndarray, cloud: np.ndarray | cKDTree) -> float:
+    """CD: mean (mm) over keypoints X (N, 3) m of the distance to the nearest segmented point (M, 3) m."""
+    tree = cloud if isinstance(cloud, cKDTree) else cKDTree(cloud)
+    if tree.n == 0:
+        return float("inf")
+    return float(1e3 * np.mean(tree.query(X)[0]))
+
+
+def percent_below(values: np.ndarray, threshold: float) -> float:
+    """Percentage (0-100) of per-frame values strictly below threshold (E<5: Abs mm < 5; F<10: CD mm < 10)."""
+    v = np.asarray(values, np.float64)
+    return float(100.0 * np.mean(v < threshold)) if len(v) else float("nan")
+
+
+def sequence_summary(abs_mm: np.ndarray, cd_mm: np.ndarray) -> dict[str, float]:
+    """Paper table figures from per-frame Abs (T,) and CD (T,) in mm: Abs, E<5, CD, F<10."""
+    return {
+        "Abs": float(np.mean(abs_mm)),
+        "E<5": percent_below(abs_mm, 5.0),
+        "CD": float(np.mean(cd_mm)),
+        "F<10": percent_below(cd_mm, 10.0),
+    }
+
+
+def distance_to_polyline(points: np.ndarray, polyline: np.ndarray) -> np.ndarray:
+    """Distance (N,) m from points (N, 3) to the polyline (M, 3) m (segments; N x (M-1) work, N small)."""
+    a, b = polyline[:-1], polyline[1:]
+    ab = b - a
+    L2 = np.maximum(np.einsum("mk,mk->m", ab, ab), 1e-18)
+    ap = points[:, None, :] - a[None]
+    t = np.clip(np.einsum("nmk,mk->nm", ap, ab) / L2, 0.0, 1.0)
+    d = ap - t[..., None] * ab[None]
+    return np.sqrt(np.einsum("nmk,nmk->nm", d, d).min(axis=1))
+
+
+def surface_error_mm(X: np.ndarray, samples: np.ndarray, radius: float, polyline: bool = False) -> float:
+    """GT keypoint error: RMSE (mm) of max(0, distance to the true centreline / mid-surface - radius).
+
+    X: (N, 3) m; samples: (M, 3) m dense centreline or mid-surface samples (a single chain when
+    ``polyline``, measured to its segments, else to the nearest sample); radius: m (half thickness for cloth).
+    """
+    d = distance_to_polyline(X, samples) if polyline else cKDTree(samples).query(X)[0]
+    e = np.maximum(0.0, d - radius)
+    return float(1e3 * np.sqrt(np.mean(e**2)))
+
+
+def anchor_error_mm(pred: np.ndarray, true: np.ndarray) -> float:
+    """Mean distance (mm) between predicted anchors (A, 3) m and true anchors (B, 3) m matched by Hungarian."""
+    if len(pred) == 0 or len(true) == 0:
+        return float("nan")
+    C = np.linalg.norm(pred[:, None, :] - true[None, :, :], axis=2)
+    r, c = linear_sum_assignment(C)
+    return float(1e3 * C[r, c].mean())

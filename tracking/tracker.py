@@ -1,0 +1,282 @@
+"""Algorithm 2: per-frame tracking, anchor matching, grasp indices, smoothing and loss-of-track detection.
+
+The stages are pure functions; ``Tracker`` only holds the state between frames.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
+
+from tracking.anchors import detect_anchors_1d, detect_anchors_2d
+from tracking.init import Initialisation, Topology, initialise
+from tracking.metrics import chamfer_mm, edge_rmse_mm
+from tracking.params import TrackingParams
+from tracking.solver import solve_keypoints
+
+
+class TrackStatus(str, Enum):
+    """Quality of one tracked frame: OK, DEGRADED (bad, not yet lost), LOST (re-initialise), UNINITIALISED."""
+
+    OK = "ok"
+    DEGRADED = "degraded"
+    LOST = "lost"
+    UNINITIALISED = "uninitialised"
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """One frame's output.
+
+    keypoints: (N, 3) float64 m world, raw solution; smoothed: (N, 3) causal moving average;
+    status: TrackStatus (keypoints are only trustworthy when OK); edge_rmse_mm, chamfer_mm: Abs and CD;
+    n_points: segmented points; anchors_matched / anchors_total: re-detected anchors used;
+    grasp_idx: (G,) int64 keypoint held by each gripper, -1 = none.
+    """
+
+    keypoints: np.ndarray
+    smoothed: np.ndarray
+    status: TrackStatus
+    edge_rmse_mm: float
+    chamfer_mm: float
+    n_points: int
+    anchors_matched: int
+    anchors_total: int
+    grasp_idx: np.ndarray
+
+
+def _hungarian(C: np.ndarray, bad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Min-cost assignment of cost (A, D) avoiding ``bad`` pairs -> matched (rows, cols)."""
+    r, c = linear_sum_assignment(np.where(bad, 1e6, C))
+    ok = ~bad[r, c]
+    return r[ok], c[ok]
+
+
+def match_anchors(
+    prev: np.ndarray,
+    prev_kinds: np.ndarray,
+    det: np.ndarray,
+    det_kinds: np.ndarray,
+    gate_m: float,
+    by_kind: bool,
+    regate_m: float = 0.0,
+) -> np.ndarray:
+    """Hungarian match of predicted anchors (A, 3) m to detections (D, 3) m -> (A,) index into det or -1.
+
+    Pairs farther than gate_m (or of different kinds when ``by_kind``) are not matched; anchors and
+    detections left over are then matched among themselves within the wider ``regate_m`` (an anchor
+    that drifted while it was not detected is recaptured).
+    """
+    out = np.full(len(prev), -1, np.int64)
+    if len(prev) == 0 or len(det) == 0:
+        return out
+    C = np.linalg.norm(prev[:, None, :] - det[None, :, :], axis=2)
+    kind_bad = (prev_kinds[:, None] != det_kinds[None, :]) if by_kind else np.zeros(C.shape, bool)
+    r, c = _hungarian(C, kind_bad | (C > gate_m))
+    out[r] = c
+    if regate_m > gate_m:
+        ra = np.nonzero(out < 0)[0]
+        cd = np.setdiff1d(np.arange(len(det)), c)
+        if len(ra) and len(cd):
+            sub = np.ix_(ra, cd)
+            r2, c2 = _hungarian(C[sub], kind_bad[sub] | (C[sub] > regate_m))
+            out[ra[r2]] = cd[c2]
+    return out
+
+
+def assign_grasp_indices(keypoints: np.ndarray, tcp: np.ndarray, gate_m: float) -> np.ndarray:
+    """Nearest keypoint (G,) int64 to each TCP (G, 3) m among keypoints (N, 3) m; -1 beyond gate_m."""
+    tcp = np.asarray(tcp, np.float64).reshape(-1, 3)
+    if len(tcp) == 0:
+        return np.zeros(0, np.int64)
+    d, i = cKDTree(keypoints).query(tcp)
+    return np.where(d <= gate_m, i, -1).astype(np.int64)
+
+
+def update_grasp_indices(
+    prev_idx: np.ndarray, keypoints: np.ndarray, tcp: np.ndarray, closed: np.ndarray, gate_m: float
+) -> np.ndarray:
+    """Grasp indices (G,) after a frame: open grippers hold nothing, a newly closed one grasps the nearest.
+
+    prev_idx: (G,) int64 (-1 none); keypoints (N, 3) m; tcp (G, 3) m; closed (G,) bool.
+    """
+    closed = np.asarray(closed, bool)
+    out = np.where(closed, prev_idx, -1).astype(np.int64)
+    regrasp = closed & (out < 0)
+    if regrasp.any():
+        out[regrasp] = assign_grasp_indices(keypoints, np.asarray(tcp)[regrasp], gate_m)
+    return out
+
+
+def track_frame(
+    X_prev: np.ndarray,
+    topology: Topology,
+    cloud: np.ndarray,
+    det_pos: np.ndarray,
+    det_kinds: np.ndarray,
+    params: TrackingParams,
+    tcp: np.ndarray | None = None,
+    grasp_idx: np.ndarray | None = None,
+    X_pred: np.ndarray | None = None,
+) -> tuple[np.ndarray, int]:
+    """One step of Algorithm 2: match anchors, add grasped TCP anchors, solve warm-started from X_prev.
+
+    X_prev: (N, 3) m; cloud: (M, 3) m segmented; det_pos/det_kinds: re-detected anchors (D, 3) m / (D,).
+    X_pred: (N, 3) m predicted keypoints (e.g. constant velocity) used to match anchors, default X_prev.
+    An anchor not re-detected is left free this frame (warm-started at its previous position).
+    Keypoints held by a gripper (grasp_idx >= 0) are fixed at that gripper's TCP (G, 3) m.
+    Returns (X (N, 3) float64 m, number of matched anchors).
+    """
+    ai = topology.anchor_idx
+    Xm = X_prev if X_pred is None else X_pred
+    m = match_anchors(
+        Xm[ai],
+        topology.anchor_kind,
+        det_pos,
+        det_kinds,
+        params.anchor_gate_m,
+        topology.kind == "1d",
+        params.anchor_regate_m,
+    )
+    idx = [ai[m >= 0]]
+    pos = [det_pos[m[m >= 0]]]
+    if tcp is not None and grasp_idx is not None:
+        g = np.asarray(grasp_idx, np.int64)
+        held = g >= 0
+        keep = ~np.isin(idx[0], g[held])
+        idx, pos = [idx[0][keep], g[held]], [pos[0][keep], np.asarray(tcp, np.float64).reshape(-1, 3)[held]]
+    aidx, apos = np.concatenate(idx), np.concatenate(pos)
+    X = solve_keypoints(
+        X_prev, topology.edges, topology.rest, aidx, apos, cloud, params.track_iterations, params, topology.colours
+    )
+    return X, int((m >= 0).sum())
+
+
+def detect_anchors(
+    kind: str, cloud: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, params: TrackingParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """Re-detect anchors of a "1d" or "2d" object in a segmented cloud (M, 3) m -> (positions (D, 3), kinds (D,))."""
+    if kind == "1d":
+        return detect_anchors_1d(cloud, K, T_world_cam, params)
+    return detect_anchors_2d(cloud, K, T_world_cam, params)
+
+
+def smooth_causal(traj: np.ndarray, window: int) -> np.ndarray:
+    """Causal moving average of a trajectory (T, N, 3): frame t averages frames max(0, t-w+1)..t."""
+    T = len(traj)
+    c = np.cumsum(np.concatenate([np.zeros((1,) + traj.shape[1:]), traj]), axis=0)
+    t = np.arange(T)
+    lo = np.maximum(0, t - window + 1)
+    return (c[t + 1] - c[lo]) / (t + 1 - lo)[:, None, None]
+
+
+def smooth_symmetric(traj: np.ndarray, window: int) -> np.ndarray:
+    """Symmetric moving average of a trajectory (T, N, 3) with an odd window (shrunk at the ends), frames."""
+    T = len(traj)
+    h = max(0, window // 2)
+    c = np.cumsum(np.concatenate([np.zeros((1,) + traj.shape[1:]), traj]), axis=0)
+    t = np.arange(T)
+    lo, hi = np.maximum(0, t - h), np.minimum(T, t + h + 1)
+    return (c[hi] - c[lo]) / (hi - lo)[:, None, None]
+
+
+class Tracker:
+    """Stateful wrapper: initialise on a segmented cloud, then ``step`` per frame (K, T_world_cam fixed)."""
+
+    def __init__(self, params: TrackingParams, K: np.ndarray, T_world_cam: np.ndarray) -> None:
+        """params: TrackingParams; K: (3, 3) camera matrix; T_world_cam: (4, 4) camera pose in the world."""
+        self.params = params
+        self.K = np.asarray(K, np.float64)
+        self.T = np.asarray(T_world_cam, np.float64)
+        self.topology: Topology | None = None
+        self.keypoints: np.ndarray | None = None
+        self._velocity: np.ndarray | None = None
+        self.grasp_idx = np.zeros(0, np.int64)
+        self._history: deque[np.ndarray] = deque(maxlen=max(1, params.causal_window))
+        self._bad = 0
+
+    @property
+    def initialised(self) -> bool:
+        """True once initialised and not lost."""
+        return self.topology is not None
+
+    def reset(self) -> None:
+        """Forget the track (the caller re-initialises)."""
+        self.topology = None
+        self.keypoints = None
+        self._velocity = None
+        self.grasp_idx = np.zeros(0, np.int64)
+        self._history.clear()
+        self._bad = 0
+
+    def initialise(
+        self, cloud: np.ndarray, tcp: np.ndarray | None = None, kind: str | None = None
+    ) -> tuple[Initialisation, FrameResult]:
+        """Initialise on a segmented cloud (M, 3) m; tcp (G, 3) m of the grippers gives grasp indices.
+
+        Raises tracking.init.InitialisationError when the cloud cannot be initialised.
+        """
+        self.reset()
+        ini = initialise(cloud, self.K, self.T, self.params, kind)
+        self.topology = ini.topology
+        self.keypoints = ini.keypoints
+        if tcp is not None:
+            self.grasp_idx = assign_grasp_indices(ini.keypoints, tcp, self.params.grasp_gate_m)
+        self._history.append(ini.keypoints)
+        na = len(ini.topology.anchor_idx)
+        return ini, self._result(ini.keypoints, cloud, na, na)
+
+    def step(
+        self, cloud: np.ndarray, tcp: np.ndarray | None = None, gripper_closed: np.ndarray | None = None
+    ) -> FrameResult:
+        """Track one frame's segmented cloud (M, 3) m; tcp (G, 3) m and gripper_closed (G,) bool are optional.
+
+        Grasp indices follow the grippers (regrasp on closing). After ``lost_after_frames`` bad frames
+        the status is LOST and the tracker resets: the caller must initialise again.
+        """
+        if self.topology is None or self.keypoints is None:
+            empty = np.zeros((0, 3))
+            return FrameResult(
+                empty, empty, TrackStatus.UNINITIALISED, float("nan"), float("nan"), len(cloud), 0, 0, self.grasp_idx
+            )
+        p = self.params
+        if tcp is not None and gripper_closed is not None:
+            if len(self.grasp_idx) != len(tcp):
+                self.grasp_idx = np.full(len(tcp), -1, np.int64)
+            self.grasp_idx = update_grasp_indices(self.grasp_idx, self.keypoints, tcp, gripper_closed, p.grasp_gate_m)
+        na = len(self.topology.anchor_idx)
+        if len(cloud) < p.min_object_points:
+            return self._result(self.keypoints, cloud, 0, na, force_bad=True)
+        det, kinds = detect_anchors(self.topology.kind, cloud, self.K, self.T, p)
+        pred = self.keypoints if self._velocity is None else self.keypoints + self._velocity
+        X, matched = track_frame(self.keypoints, self.topology, cloud, det, kinds, p, tcp, self.grasp_idx, pred)
+        return self._result(X, cloud, matched, na)
+
+    def _result(
+        self, X: np.ndarray, cloud: np.ndarray, matched: int, total: int, force_bad: bool = False
+    ) -> FrameResult:
+        """Score a solution, update the state and the loss-of-track counter."""
+        assert self.topology is not None
+        p = self.params
+        abs_mm = edge_rmse_mm(X, self.topology.edges, self.topology.rest)
+        cd_mm = chamfer_mm(X, cloud) if len(cloud) else float("inf")
+        bad = force_bad or abs_mm > 1e3 * p.max_edge_rmse_m or cd_mm > 1e3 * p.max_chamfer_m
+        self._bad = self._bad + 1 if bad else 0
+        if not force_bad:
+            if self.keypoints is not None and self.keypoints is not X:
+                self._velocity = X - self.keypoints
+            self.keypoints = X
+        if not bad:
+            self._history.append(X)
+        smoothed = np.mean(np.stack(self._history), axis=0) if self._history else X
+        status = TrackStatus.OK if not bad else TrackStatus.DEGRADED
+        grasp = self.grasp_idx.copy()
+        if self._bad >= p.lost_after_frames:
+            status = TrackStatus.LOST
+            self.reset()
+        return FrameResult(X, smoothed, status, abs_mm, cd_mm, len(cloud), matched, total, grasp)
