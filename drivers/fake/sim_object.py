@@ -334,6 +334,7 @@ class SimObject:
         self._pins: dict[str, np.ndarray] = {}  # gripper -> (k,) pinned particles (finger pad)
         self._offsets: dict[str, np.ndarray] = {}  # gripper -> (k, 3) their offsets in the TCP frame
         self._tcp: dict[str, np.ndarray] = {}  # last TCP pose per gripper
+        self._was_closed: dict[str, bool] = {}  # grasping happens when a gripper closes, not while closed
         self.direct = len(topo.stretch) <= DIRECT_MAX_CONSTRAINTS and not topo.chain_sets
         if self.direct:
             self._init_direct()
@@ -451,7 +452,7 @@ class SimObject:
         whose TCPs are farther apart than the grasped span allows, only the first one grasps.
         """
         topo = self.topology
-        self.held, self._pins, self._offsets, self._tcp = {}, {}, {}, {}
+        self.held, self._pins, self._offsets, self._tcp, self._was_closed = {}, {}, {}, {}, {}
         pts = [np.asarray(T, dtype=np.float64)[:3, 3] for _, T in tcp_poses]
         ga, gb = topo.start_grasp
         span = float(np.linalg.norm(topo.rest_layout[gb] - topo.rest_layout[ga]))
@@ -495,6 +496,7 @@ class SimObject:
             self._grasp(name, np.asarray(T, dtype=np.float64), particle)
         for name, T in tcp_poses:
             self._tcp[name] = np.asarray(T, dtype=np.float64).copy()
+            self._was_closed[name] = True
         self._update_weights()
         self.settle(settle_time)
 
@@ -527,10 +529,11 @@ class SimObject:
         changed = False
         for name, T in tcp_poses.items():
             is_closed = bool(closed.get(name, False))
+            was_closed, self._was_closed[name] = self._was_closed.get(name, False), is_closed
             if not is_closed and name in self.held:
                 del self.held[name], self._pins[name], self._offsets[name]
                 changed = True
-            elif is_closed and name not in self.held:
+            elif is_closed and not was_closed and name not in self.held:
                 d = np.linalg.norm(self.x - T[:3, 3], axis=1)
                 d[np.concatenate([np.zeros(0, np.int64), *self._pins.values()])] = np.inf
                 p = int(np.argmin(d))

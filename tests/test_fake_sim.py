@@ -1,0 +1,137 @@
+"""The simulated object and the renderer of mock mode (drivers/fake/sim_object.py, render.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from drivers.config import SimObjectConfig
+from drivers.fake.render import SceneRenderer, mock_camera_pose, tube_mesh
+from drivers.fake.sim_object import SimObject
+from drivers.types import CameraIntrinsics
+
+CLOSED = {"left": True, "right": True}
+
+
+def tcp(p) -> np.ndarray:
+    """A TCP pose pointing down (z axis = -world z) at position p."""
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    T[:3, 3] = p
+    return T
+
+
+HOME = [("left", tcp([0.45, 0.25, 0.40])), ("right", tcp([0.45, -0.25, 0.40]))]
+
+
+def hung(kind: str, **kw) -> SimObject:
+    sim = SimObject(SimObjectConfig(kind=kind, **kw))
+    sim.reset(HOME, settle_time=1.0)
+    return sim
+
+
+@pytest.mark.parametrize("kind", ["rope", "branched_rope"])
+def test_ropes_are_inextensible_after_settling(kind):
+    sim = hung(kind)
+    r = sim.stretch_ratio()
+    assert r.max() < 1.02 and r.min() > 0.98
+    assert sim.x[:, 2].min() >= sim.radius - 1e-9  # never below the table
+
+
+def test_cloth_stretch_is_small_after_settling():
+    sim = hung("cloth")
+    r = sim.stretch_ratio()
+    # Away from the stress concentration at the two pinned corners the sheet is inextensible.
+    assert np.percentile(r, 98) < 1.02
+    assert abs(r.mean() - 1.0) < 0.01
+
+
+@pytest.mark.parametrize(("kind", "n", "category", "n_anchors"), [
+    ("rope", 20, "dlo", 2), ("branched_rope", 25, "bdlo", 4), ("cloth", 36, "cloth", 4),
+])
+def test_ground_truth_layout(kind, n, category, n_anchors):
+    sim = hung(kind)
+    gt = sim.ground_truth()
+    assert gt.keypoints.shape == (n, 3) and gt.category == category
+    assert len(gt.anchors) == n_anchors and gt.edges.max() < n
+    assert len(gt.centreline) > 5 * n
+    # The grasped anchors are the keypoints at the TCPs.
+    for name, T in HOME:
+        k = gt.grasp[name]
+        assert k in gt.anchors
+        assert np.linalg.norm(gt.keypoints[k] - T[:3, 3]) < 1e-3
+    if kind == "rope":  # evenly spaced by arc length
+        seg = np.linalg.norm(np.diff(gt.keypoints, axis=0), axis=1)
+        assert np.allclose(seg, 0.7 / 19, rtol=0.03)
+
+
+def _run(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    sim = SimObject(SimObjectConfig(kind="rope", seed=seed))
+    sim.reset(HOME, settle_time=0.3)
+    for k in range(20):
+        sim.step(1 / 30, {"left": tcp([0.45, 0.25 - 0.004 * k, 0.40 + 0.003 * k]), "right": HOME[1][1]}, CLOSED)
+    return sim.positions, sim.keypoints()
+
+
+def test_determinism():
+    a, b = _run(3), _run(3)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    assert not np.array_equal(a[0], _run(4)[0])
+
+
+def test_grasped_end_follows_tcp_and_release_drops_it():
+    sim = hung("rope")
+    start = sim.keypoints()[0]
+    for k in range(1, 16):  # left TCP moves 6 cm in x and up 4.5 cm over 0.5 s
+        T = tcp(HOME[0][1][:3, 3] + k * np.array([0.004, 0.0, 0.003]))
+        sim.step(1 / 30, {"left": T, "right": HOME[1][1]}, CLOSED)
+        assert np.linalg.norm(sim.keypoints()[0] - T[:3, 3]) < 1e-3
+    assert np.linalg.norm(sim.keypoints()[0] - start) > 0.07
+    sim.step(0.5, {"left": T, "right": HOME[1][1]}, {"left": False, "right": True})
+    assert "left" not in sim.held and sim.ground_truth().grasp["left"] == -1
+    assert sim.keypoints()[0][2] < T[2, 3] - 0.2  # the free end fell
+    # Closing again far from the rope grasps nothing; the right end is still held.
+    sim.step(0.1, {"left": T, "right": HOME[1][1]}, CLOSED)
+    assert "left" not in sim.held and sim.ground_truth().grasp["right"] == 19
+
+
+def test_rendered_table_depth_matches_geometry():
+    K = CameraIntrinsics.from_fov(320, 240, 69.0)
+    T = mock_camera_pose().matrix()
+    r = SceneRenderer(K, T, clutter=0, flying_pixels=0.0, edge_dropout=0.0, seed=1)
+    out = r.render([], None, frame_index=0)
+    # Analytic z of the table plane z_world = 0 along every pixel's ray.
+    u, v = np.meshgrid(np.arange(K.width), np.arange(K.height))
+    d = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u, dtype=float)], -1) @ T[:3, :3].T
+    s = -T[2, 3] / d[..., 2]
+    hit = s > 0
+    p = T[:3, 3] + d * s[..., None]
+    on_table = hit & (np.abs(p[..., 0]) < 0.95) & (np.abs(p[..., 1]) < 1.35)
+    assert on_table.mean() > 0.5
+    z_true = np.where(on_table, s, 0.0)
+    assert np.allclose(out.depth_true[on_table], z_true[on_table], atol=1e-4)
+    depth = out.depth.astype(float) * 1e-3
+    ok = on_table & (depth > 0)
+    assert ok.sum() > 0.95 * on_table.sum()
+    err = depth[ok] - z_true[ok]
+    sigma = 0.0015 * z_true[ok] ** 2
+    assert abs(np.median(err)) < 1e-3
+    assert np.mean(np.abs(err) < 4 * sigma + 0.0006) > 0.99  # noise ~ z^2 plus 1 mm quantisation
+    assert out.color.shape == (240, 320, 3) and out.color.dtype == np.uint8
+
+
+def test_object_pixels_exist_and_noise_is_seeded():
+    sim = hung("rope")
+    K = CameraIntrinsics.from_fov(320, 240, 69.0)
+    r = SceneRenderer(K, mock_camera_pose().matrix(), seed=2)
+    mesh = tube_mesh(sim.x, sim.radius)
+    a = r.render([], mesh, frame_index=5, with_mask=True)
+    b = r.render([], mesh, frame_index=5, with_mask=True)
+    c = r.render([], mesh, frame_index=6)
+    assert a.mask is not None and a.mask.sum() > 200
+    assert np.array_equal(a.depth, b.depth) and np.array_equal(a.color, b.color)
+    assert not np.array_equal(a.depth, c.depth)
+    # Object pixels are object-coloured and at the object's depth (about 1 m away).
+    assert np.median(a.color[a.mask][:, 0]) > np.median(a.color[a.mask][:, 2]) + 40
+    zd = a.depth[a.mask & (a.depth > 0)] * 1e-3
+    assert 0.6 < np.median(zd) < 1.4
