@@ -135,3 +135,16 @@ def test_object_pixels_exist_and_noise_is_seeded():
     assert np.median(a.color[a.mask][:, 0]) > np.median(a.color[a.mask][:, 2]) + 40
     zd = a.depth[a.mask & (a.depth > 0)] * 1e-3
     assert 0.6 < np.median(zd) < 1.4
+
+
+def test_closing_near_the_object_grasps_the_nearest_particle():
+    sim = hung("rope")
+    sim.step(1.0, dict(HOME), {"left": False, "right": True})
+    end = sim.keypoints()[0]
+    T = tcp(end + [0.0, 0.0, 0.01])  # 1 cm above the fallen end
+    sim.step(1 / 30, {"left": T, "right": HOME[1][1]}, {"left": False, "right": True})
+    sim.step(1 / 30, {"left": T, "right": HOME[1][1]}, CLOSED)
+    assert sim.ground_truth().grasp["left"] == 0
+    lifted = tcp(end + [0.0, 0.0, 0.15])
+    sim.step(0.5, {"left": lifted, "right": HOME[1][1]}, CLOSED)
+    assert sim.keypoints()[0][2] > end[2] + 0.12

@@ -1,0 +1,192 @@
+"""The simulated station's devices (drivers/fake/devices.py) against the Protocols of drivers/base.py."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from drivers.base import Arm, DeviceError, Gripper, RGBDCamera, create_arm, create_camera, create_gripper
+from drivers.clock import SimClock
+from drivers.config import FakeArmConfig, FakeCameraConfig, FakeGripperConfig, Pose, SimObjectConfig
+from drivers.fake.devices import FakeArm, SimStation
+from drivers.fake.render import mock_camera_pose
+from drivers.types import JointMotion
+
+HOME = {  # configs/mock.yaml: TCPs at (0.45, +-0.25, 0.40) pointing down
+    "left": [-0.082209, -0.221521, -0.309478, -2.116897, -0.070888, 1.904804, 0.424088],
+    "right": [0.082002, -0.221535, 0.309668, -2.116897, 0.070935, 1.904801, 1.146671],
+}
+BASE_Y = {"left": 0.45, "right": -0.45}
+
+
+def motion(q0, q1, duration: float, dt: float = 0.01) -> JointMotion:
+    """A smooth rest-to-rest joint motion (smoothstep) from q0 to q1."""
+    q0, q1 = np.asarray(q0, float), np.asarray(q1, float)
+    t = np.arange(0.0, duration + dt / 2, dt)
+    s = t / duration
+    a, da = 3 * s**2 - 2 * s**3, (6 * s - 6 * s**2) / duration
+    return JointMotion(
+        times=t, q=q0 + a[:, None] * (q1 - q0), dq=da[:, None] * (q1 - q0),
+        targets=q1[None], durations=np.array([duration]), limit_scale=np.array([1.0]),
+    )
+
+
+@pytest.fixture
+def station():
+    clock = SimClock(10.0)
+    st = SimStation(SimObjectConfig(kind="rope"), clock, seed=0, settle_time=0.5)
+    arms = {
+        n: create_arm(FakeArmConfig(base=Pose(xyz=(0, BASE_Y[n], 0)), home=HOME[n]), name=n, clock=clock, station=st)
+        for n in ("left", "right")
+    }
+    grippers = {n: create_gripper(FakeGripperConfig(), name=n, clock=clock, station=st) for n in ("left", "right")}
+    cam = create_camera(
+        FakeCameraConfig(width=320, height=240, pose=mock_camera_pose(), clutter=3), clock=clock, station=st
+    )
+    for d in (*arms.values(), *grippers.values(), cam):
+        d.connect()
+    return clock, st, arms, grippers, cam
+
+
+def test_devices_implement_the_protocols(station):
+    _, _, arms, grippers, cam = station
+    assert all(isinstance(a, Arm) for a in arms.values())
+    assert all(isinstance(g, Gripper) for g in grippers.values())
+    assert isinstance(cam, RGBDCamera)
+
+
+def test_frames_at_30hz_without_gaps_with_ground_truth(station):
+    clock, _, _, _, cam = station
+    frames = [cam.read() for _ in range(8)]
+    assert [f.frame_number for f in frames] == list(range(8))
+    stamps = np.array([f.device_stamp for f in frames])
+    assert np.allclose(np.diff(stamps), 1 / 30)
+    assert all(f.host_stamp == f.device_stamp for f in frames)  # SimClock: no latency
+    f = frames[-1]
+    assert f.color.shape == (240, 320, 3) and f.depth.shape == (240, 320) and f.depth.dtype == np.uint16
+    gt = f.ground_truth
+    assert gt is not None and gt.keypoints.shape == (20, 3) and gt.category == "dlo"
+    assert gt.grasp == {"left": 0, "right": 19}
+    # The grasped ends are at the TCPs of the arms at the frame time.
+    assert np.linalg.norm(gt.keypoints[0] - [0.45, 0.25, 0.40]) < 0.005
+    assert clock.now() == pytest.approx(stamps[-1])
+
+
+def test_object_is_visible_in_depth(station):
+    _, _, _, _, cam = station
+    cam.render_mask = True
+    f = cam.read()
+    mask = cam.last_mask
+    assert mask is not None and mask.sum() > 150
+    z = f.depth_m()[mask & (f.depth > 0)]
+    assert 0.6 < np.median(z) < 1.4
+
+
+def test_arm_reaches_motion_end_and_carries_the_rope(station):
+    clock, st, arms, _, cam = station
+    arm = arms["left"]
+    q1 = np.array(HOME["left"]) + np.array([0.15, 0.1, 0.0, 0.1, 0.0, -0.1, 0.0])
+    t0 = clock.now()
+    arm.start_motion(motion(arm.read_state().q, q1, 1.0))
+    with pytest.raises(DeviceError):
+        arm.start_motion(motion(q1, q1, 0.5))  # busy
+    assert arm.wait_motion(0.3) is False
+    assert arm.wait_motion(5.0) is True
+    assert clock.now() == pytest.approx(t0 + 1.0)
+    assert np.allclose(arm.read_state().q, q1, atol=1e-9)
+    f = cam.read()
+    tcp = arm.tcp_at(clock.now())[:3, 3]
+    assert np.linalg.norm(f.ground_truth.keypoints[0] - tcp) < 0.005
+    assert st.sim.stretch_ratio().max() < 1.02
+
+
+def test_motion_must_start_at_current_state(station):
+    _, _, arms, _, _ = station
+    q = np.array(HOME["right"])
+    with pytest.raises(DeviceError, match="away from the current joint"):
+        arms["right"].start_motion(motion(q + 0.1, q, 1.0))
+
+
+def test_arm_fault_injection_and_recovery(station):
+    clock, _, arms, _, _ = station
+    arm = arms["left"]
+    q0 = arm.read_state().q
+    q1 = q0 + 0.2
+    t0 = clock.now()
+    arm.inject_fault(t0 + 0.4)
+    arm.start_motion(motion(q0, q1, 1.0))
+    with pytest.raises(DeviceError) as e:
+        arm.wait_motion(5.0)
+    assert e.value.recoverable and clock.now() == pytest.approx(t0 + 0.4)
+    frozen = arm.read_state().q
+    clock.sleep_until(t0 + 2.0)
+    assert np.allclose(arm.read_state().q, frozen)  # frozen, not finishing the motion
+    with pytest.raises(DeviceError):
+        arm.start_motion(motion(frozen, q1, 1.0))
+    arm.recover()
+    arm.start_motion(motion(arm.read_state().q, q1, 1.0))
+    assert arm.wait_motion(2.0) and np.allclose(arm.read_state().q, q1)
+
+
+def test_arm_lag_and_noise():
+    clock = SimClock()
+    arm = FakeArm(FakeArmConfig(lag=0.05, noise=0.001), name="left", clock=clock)
+    q0 = np.array(FakeArmConfig().home)
+    arm.start_motion(motion(q0, q0 + 0.3, 1.0))
+    clock.sleep_until(0.5)
+    q_lag, _ = arm.state_at(0.5)
+    q_cmd = arm._motion.sample(0.5)[0]
+    assert np.all(q_lag < q_cmd - 0.005)  # behind the command while it moves up
+    arm.wait_motion(2.0)
+    clock.sleep_until(2.0)
+    s = arm.read_state()
+    assert np.allclose(s.q, q0 + 0.3, atol=0.006)  # converged, within noise
+    assert s.stamp == pytest.approx(2.0)
+
+
+def test_gripper_release_and_regrasp(station):
+    clock, st, _, grippers, cam = station
+    g = grippers["left"]
+    assert g.read_state().grasped and g.read_state().width == pytest.approx(0.016)
+    g.command(closed=False)
+    clock.sleep_until(clock.now() + 0.3)
+    assert 0.016 < g.read_state().width < 0.08  # fingers move at 0.1 m/s
+    clock.sleep_until(clock.now() + 0.5)
+    s = g.read_state()
+    assert not s.grasped and s.width == pytest.approx(0.08)
+    f = cam.read()
+    assert f.ground_truth.grasp["left"] == -1
+    g.command(closed=False, width=0.03)
+    clock.sleep_until(clock.now() + 0.1)
+    # The released end has swung away from the TCP; closing now grasps nothing.
+    g.command(closed=True)
+    clock.sleep_until(clock.now() + 1.0)
+    s = g.read_state()
+    assert not s.grasped and s.width == pytest.approx(0.0)
+
+
+def test_camera_faults(station):
+    _, _, _, _, cam = station
+    a = cam.read()
+    cam.inject_fault("drop")
+    b = cam.read()
+    assert b.frame_number == a.frame_number + 2  # one frame lost
+    cam.inject_fault("error")
+    with pytest.raises(DeviceError):
+        cam.read()
+    c = cam.read()
+    assert c.frame_number == b.frame_number + 2  # the failed read consumed a frame
+    cam.close()
+    with pytest.raises(DeviceError):
+        cam.read()
+
+
+def test_station_episode_facts_and_object_swap(station):
+    clock, st, _, _, cam = station
+    cam.read()
+    facts = st.episode_facts()
+    assert facts["grasp_indices"] == {"left": 0, "right": 19} and facts["sim_kind"] == "rope"
+    st.set_object(SimObjectConfig(kind="cloth", spacing=0.035))
+    f = cam.read()
+    assert f.ground_truth.category == "cloth" and f.ground_truth.keypoints.shape == (36, 3)
+    assert f.ground_truth.grasp == {"left": 0, "right": 5}
