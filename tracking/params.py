@@ -54,6 +54,8 @@ class TrackingParams:
       causal_window, symmetric_window: moving-average windows, frames.
       min_object_points: fewer segmented points than this is a bad frame.
       max_edge_rmse_m, max_chamfer_m: a frame with Abs or CD above these is bad, m.
+      max_jump_m: a frame whose median keypoint displacement from the previous frame exceeds this
+        is bad and its solution is discarded, m.
       lost_after_frames: this many consecutive bad frames means the track is lost.
     seed: random seed of every sampled step.
     """
@@ -68,11 +70,11 @@ class TrackingParams:
     arm_render_stride: int = 2
     lift_stride: int = 2
     voxel_m: float = 0.004
-    dbscan_eps_m: float = 0.012
+    dbscan_eps_m: float = 0.015
     dbscan_min_points: int = 3
-    dbscan_voxel_m: float = 0.008
+    dbscan_voxel_m: float = 0.006
     min_cluster_points: int = 10
-    cluster_keep_fraction: float = 0.2
+    cluster_keep_fraction: float = 0.05
     cluster_keep_gap_m: float = 0.08
     track_gate_m: float = 0.05
 
@@ -99,7 +101,7 @@ class TrackingParams:
     use_edge_projection: bool = True
     use_cloud_projection: bool = True
     surface_k: int = 8
-    surface_slide_m: float = 0.004
+    surface_slide_m: float = 0.003
 
     anchor_gate_m: float = 0.05
     anchor_regate_m: float = 0.15
@@ -109,6 +111,7 @@ class TrackingParams:
     min_object_points: int = 30
     max_edge_rmse_m: float = 0.015
     max_chamfer_m: float = 0.015
+    max_jump_m: float = 0.08
     lost_after_frames: int = 5
 
     seed: int = 0

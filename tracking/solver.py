@@ -54,21 +54,26 @@ def project_edges(
 
 
 def project_to_cloud(X: np.ndarray, tree: cKDTree, k: int, max_slide_m: float) -> np.ndarray:
-    """Project points X (n, 3) m onto the cloud: nearest point (k <= 1), or nearest point plus the tangential
-    offset along the local surface (PCA plane of k neighbours) clamped to ``max_slide_m``, which lets
-    keypoints slide below the cloud's point spacing. Returns (n, 3) float64 m."""
+    """Project points X (n, 3) m onto the cloud in the tree -> (n, 3) float64 m.
+
+    k <= 1: the nearest cloud point (the paper). Otherwise the nearest point plus the offset to X
+    restricted to the local extent of the cloud (principal directions of the k nearest points whose
+    variance is at least 10 % of the largest: the tangent plane of a surface, the tangent of a line)
+    and clamped to ``max_slide_m``; keypoints then slide below the cloud's point spacing instead of
+    sticking to voxel centres.
+    """
     pts = tree.data
     if k <= 1:
         return pts[tree.query(X)[1]]
     k = min(k, tree.n)
     _, nn = tree.query(X, k=k)
-    nb = pts[nn]
+    nb = pts[nn.reshape(len(X), k)]
     c = nb - nb.mean(axis=1, keepdims=True)
-    _, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", c, c))
-    normal = vec[:, :, 0]
+    lam, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", c, c))
+    keep = lam >= 0.1 * lam[:, -1:]
     p = nb[:, 0]
-    off = X - p
-    off -= np.einsum("nk,nk->n", off, normal)[:, None] * normal
+    coef = np.einsum("nk,nkj->nj", X - p, vec) * keep
+    off = np.einsum("nj,nkj->nk", coef, vec)
     n = np.linalg.norm(off, axis=1, keepdims=True)
     off *= np.minimum(1.0, max_slide_m / np.maximum(n, 1e-12))
     return p + off

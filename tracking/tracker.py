@@ -260,14 +260,19 @@ class Tracker:
     def _result(
         self, X: np.ndarray, cloud: np.ndarray, matched: int, total: int, force_bad: bool = False
     ) -> FrameResult:
-        """Score a solution, update the state and the loss-of-track counter."""
+        """Score a solution, update the state and the loss-of-track counter.
+
+        A frame is bad without a cloud, when the keypoints jumped (solution discarded) or when Abs or
+        CD exceed their thresholds (solution kept as the next warm start, flagged DEGRADED).
+        """
         assert self.topology is not None
         p = self.params
         abs_mm = edge_rmse_mm(X, self.topology.edges, self.topology.rest)
         cd_mm = chamfer_mm(X, cloud) if len(cloud) else float("inf")
-        bad = force_bad or abs_mm > 1e3 * p.max_edge_rmse_m or cd_mm > 1e3 * p.max_chamfer_m
+        jump = self.keypoints is not None and bool(np.median(np.linalg.norm(X - self.keypoints, axis=1)) > p.max_jump_m)
+        bad = force_bad or jump or abs_mm > 1e3 * p.max_edge_rmse_m or cd_mm > 1e3 * p.max_chamfer_m
         self._bad = self._bad + 1 if bad else 0
-        if not force_bad:
+        if not (force_bad or jump):
             if self.keypoints is not None and self.keypoints is not X:
                 self._velocity = X - self.keypoints
             self.keypoints = X

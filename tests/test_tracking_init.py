@@ -1,0 +1,128 @@
+"""Classification, anchors and initial topology on synthetic rope, branched rope and cloth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from tracking import synthetic as S
+from tracking.anchors import CORNER, JUNCTION, LEAF, detect_anchors_1d
+from tracking.classify import classify_object
+from tracking.geometry import farthest_point_sampling
+from tracking.init import allocate, initialise
+from tracking.metrics import edge_rmse_mm
+from tracking.params import TrackingParams
+from tracking.segmentation import background_from_depths, segment_against_background
+
+W, H = 640, 480
+P = TrackingParams()
+
+
+@pytest.fixture(scope="module")
+def scene():
+    K, T = S.default_camera(W, H)
+    rng = np.random.default_rng(0)
+    bg = background_from_depths(np.stack([S.render_depth([S.table_mesh()], K, T, (H, W), rng=rng) for _ in range(3)]))
+
+    def segment(meshes):
+        d = S.render_depth([S.table_mesh(), *meshes], K, T, (H, W), rng=rng)
+        return segment_against_background(d, bg, K, T, P).points
+
+    return K, T, segment
+
+
+@pytest.fixture(scope="module")
+def rope(scene):
+    K, T, segment = scene
+    c = S.rope_centreline(0.3)
+    return c, segment([S.tube_mesh(c, 0.006)])
+
+
+@pytest.fixture(scope="module")
+def yrope(scene):
+    K, T, segment = scene
+    br = S.y_rope_branches()
+    return br, segment([S.tube_mesh(b, 0.006) for b in br])
+
+
+@pytest.fixture(scope="module")
+def cloth(scene):
+    K, T, segment = scene
+    cs = S.cloth_surface()
+    return cs, segment([S.sheet_mesh(cs)])
+
+
+def test_classification(rope, yrope, cloth):
+    assert classify_object(rope[1], P).kind == "1d"
+    assert classify_object(yrope[1], P).kind == "1d"
+    c = classify_object(cloth[1], P)
+    assert c.kind == "2d" and c.plane_ratio < P.plane_ratio_max
+
+
+def test_rope_anchors_at_the_ends(scene, rope):
+    K, T, _ = scene
+    c, pts = rope
+    pos, kinds = detect_anchors_1d(pts, K, T, P)
+    assert list(kinds) == [LEAF, LEAF]
+    d, _ = cKDTree(pos).query(c[[0, -1]])
+    assert d.max() < 0.012  # skin tip vs centreline end: within ~2 radii
+
+
+def test_rope_initialisation_chain(scene, rope):
+    K, T, _ = scene
+    c, pts = rope
+    ini = initialise(pts, K, T, P)
+    tp = ini.topology
+    N = P.n_keypoints_1d
+    assert tp.kind == "1d" and ini.keypoints.shape == (N, 3)
+    assert np.array_equal(tp.edges, np.stack([np.arange(N - 1), np.arange(1, N)], axis=1))
+    assert sorted(tp.anchor_idx.tolist()) == [0, N - 1]
+    assert abs(tp.rest.sum() - 0.6) < 0.02  # measured length of the 0.6 m rope
+    assert edge_rmse_mm(ini.keypoints, tp.edges, tp.rest) < 4.0
+    s = np.linspace(0, 0.6, len(c))
+    arc = s[cKDTree(c).query(ini.keypoints)[1]]
+    assert np.all(np.abs(np.diff(arc)) > 0.01) and (np.all(np.diff(arc) > 0) or np.all(np.diff(arc) < 0))
+
+
+def test_branched_rope_junction_and_tree(scene, yrope):
+    K, T, _ = scene
+    br, pts = yrope
+    ini = initialise(pts, K, T, P)
+    tp = ini.topology
+    kinds = tp.anchor_kind
+    assert (kinds == LEAF).sum() == 3 and (kinds == JUNCTION).sum() == 1
+    junction = ini.keypoints[tp.anchor_idx[kinds == JUNCTION][0]]
+    assert np.linalg.norm(junction[:2] - br[0][0, :2]) < 0.02
+    leaves = ini.keypoints[tp.anchor_idx[kinds == LEAF]]
+    assert cKDTree(leaves).query(np.array([b[-1] for b in br]))[0].max() < 0.015
+    deg = np.bincount(tp.edges.ravel())
+    assert deg.max() == 3 and len(tp.edges) == len(ini.keypoints) - 1  # a tree
+    assert len(tp.chains) == 3
+    lengths = [len(ch) - 1 for ch in tp.chains]  # edges per branch roughly proportional to 0.25 : 0.22 : 0.22
+    assert max(lengths) - min(lengths) <= 2
+
+
+def test_cloth_grid(scene, cloth):
+    K, T, _ = scene
+    cs, pts = cloth
+    ini = initialise(pts, K, T, P)
+    tp = ini.topology
+    R, C = P.grid_rows, P.grid_cols
+    assert tp.kind == "2d" and tp.grid_shape == (R, C) and len(tp.edges) == R * (C - 1) + C * (R - 1)
+    assert len(tp.anchor_idx) == 2 * R + 2 * C - 4 and (tp.anchor_kind == CORNER).sum() == 4
+    corners = ini.keypoints.reshape(R, C, 3)[[0, 0, -1, -1], [0, -1, 0, -1]]
+    true = cs[[0, 0, -1, -1], [0, -1, 0, -1]]
+    assert cKDTree(corners).query(true)[0].max() < 0.015
+    assert abs(tp.rest.mean() - 0.3 / (C - 1)) < 0.01
+    assert cKDTree(cs.reshape(-1, 3)).query(ini.keypoints)[0].max() < 0.01
+
+
+def test_fps_and_allocation():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(0, 1, (2000, 3))
+    idx = farthest_point_sampling(pts, 10, seeds=np.zeros((1, 3)))
+    assert len(set(idx.tolist())) == 10
+    assert np.linalg.norm(pts[idx[0]]) > 1.5  # first pick is far from the seed
+    assert allocate(10, np.array([0.25, 0.22, 0.22])).tolist() == [4, 3, 3]
+    assert allocate(7, np.array([1.0, 0.0])).tolist() == [7, 0]

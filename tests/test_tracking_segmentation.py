@@ -1,0 +1,92 @@
+"""Colour-free segmentation: lifting, arm mask, depth differencing, background model."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from tracking import synthetic as S
+from tracking.geometry import depth_to_points, project_points
+from tracking.params import TrackingParams
+from tracking.segmentation import (
+    background_from_depths,
+    render_arm_mask,
+    segment_against_background,
+    segment_by_difference,
+    update_background,
+)
+
+W, H = 640, 480
+P = TrackingParams()
+
+
+@pytest.fixture(scope="module")
+def cam():
+    return S.default_camera(W, H)
+
+
+def test_lift_and_project_round_trip(cam):
+    K, T = cam
+    depth = S.render_depth([S.table_mesh()], K, T, (H, W))
+    pts, rc = depth_to_points(depth, K, T)
+    assert pts.shape == (H * W, 3)
+    assert np.abs(pts[:, 2]).max() < 2e-3  # the table top is z = 0 (1 mm depth quantisation)
+    uv, z = project_points(pts, K, T)
+    assert np.allclose(uv[:, ::-1], rc, atol=1e-6)
+    assert np.allclose(z, depth[rc[:, 0], rc[:, 1]], atol=1e-6)
+
+
+def test_resolution_is_not_hard_coded():
+    K, T = S.default_camera(320, 200)
+    depth = S.render_depth([S.table_mesh()], K, T, (200, 320))
+    pts, _ = depth_to_points(depth, K, T)
+    assert len(pts) == 200 * 320
+
+
+def test_arm_mask_removes_arm_keeps_object_in_front(cam):
+    K, T = cam
+    arm = S.box_mesh(np.array([0.0, 0.1, 0.2]), np.array([0.1, 0.1, 0.4]))
+    rope = S.tube_mesh(np.array([[-0.2, -0.05, 0.1], [0.2, -0.05, 0.1]]), 0.01)
+    depth = S.render_depth([S.table_mesh(), arm, rope], K, T, (H, W))
+    mask = render_arm_mask(arm[0], arm[1], K, T, (H, W), margin_px=4, depth=depth, margin_m=0.02)
+    arm_only = S.render_depth([arm], K, T, (H, W)) > 0
+    assert mask[arm_only & (np.abs(depth - S.render_depth([arm], K, T, (H, W))) < 1e-3)].mean() > 0.99
+    rope_px = S.render_depth([rope], K, T, (H, W)) > 0
+    in_front = rope_px & arm_only
+    assert in_front.sum() > 50
+    assert not mask[in_front].any()  # the rope crossing in front of the arm survives
+    sil = render_arm_mask(arm[0], arm[1], K, T, (H, W), margin_px=0)
+    assert abs(int(sil.sum()) - int(arm_only.sum())) < 0.05 * arm_only.sum()
+
+
+def test_difference_segmentation_isolates_rope_without_colour(cam):
+    K, T = cam
+    rng = np.random.default_rng(1)
+    f0 = S.rope_scene(0.0, K, T, (H, W), rng, arm_offset=0.1)
+    f1 = S.rope_scene(0.8, K, T, (H, W), rng)
+    f2 = S.rope_scene(1.6, K, T, (H, W), rng, arm_offset=-0.1)
+    am = render_arm_mask(f1.arm_vertices, f1.arm_triangles, K, T, (H, W), P.arm_margin_px, f1.depth, P.arm_margin_m)
+    seg = segment_by_difference(np.stack([f0.depth, f2.depth]), f1.depth, K, T, P, am)
+    d, _ = cKDTree(f1.centreline).query(seg.points)
+    assert d.max() < f1.radius + 0.004  # nothing but rope
+    cover, _ = cKDTree(seg.points).query(f1.centreline)
+    assert cover.max() < 0.01  # the whole rope
+    one_ref = segment_by_difference(f0.depth, f1.depth, K, T, P, am)
+    assert np.all(cKDTree(f1.centreline).query(one_ref.points)[0] < f1.radius + 0.004)
+
+
+def test_background_model_segmentation_and_update(cam):
+    K, T = cam
+    rng = np.random.default_rng(2)
+    f0 = S.rope_scene(0.0, K, T, (H, W), rng)
+    f1 = S.rope_scene(1.0, K, T, (H, W), rng)
+    bg = background_from_depths(np.stack([f0.depth, S.rope_scene(0.0, K, T, (H, W), rng).depth]))
+    am = render_arm_mask(f1.arm_vertices, f1.arm_triangles, K, T, (H, W), P.arm_margin_px, f1.depth, P.arm_margin_m)
+    bg = update_background(bg, f1.depth, P, am)  # where the rope stood at t=0 the table is revealed
+    seg = segment_against_background(f1.depth, bg, K, T, P, am, prev_keypoints=f1.centreline[::20])
+    d, _ = cKDTree(f1.centreline).query(seg.points)
+    assert d.max() < f1.radius + 0.004
+    # the old rope position is now background: nothing segmented there
+    far_from_new = cKDTree(f1.centreline).query(f0.centreline)[0] > 0.03
+    assert cKDTree(seg.points).query(f0.centreline[far_from_new])[0].min() > 0.01

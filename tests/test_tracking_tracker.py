@@ -1,0 +1,112 @@
+"""Algorithm 2 on a moving synthetic rope: accuracy, grasp indices, smoothing, loss of track."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tracking import synthetic as S
+from tracking.metrics import anchor_error_mm, surface_error_mm
+from tracking.params import TrackingParams
+from tracking.segmentation import background_from_depths, render_arm_mask, segment_against_background
+from tracking.tracker import (
+    Tracker,
+    TrackStatus,
+    assign_grasp_indices,
+    match_anchors,
+    smooth_causal,
+    smooth_symmetric,
+    update_grasp_indices,
+)
+
+W, H = 640, 480
+P = TrackingParams()
+
+
+@pytest.fixture(scope="module")
+def sequence():
+    K, T = S.default_camera(W, H)
+    rng = np.random.default_rng(0)
+    bg = background_from_depths(np.stack([S.rope_scene(0, K, T, (H, W), rng, with_object=False).depth] * 2))
+    frames = [S.rope_scene(0.15 * k, K, T, (H, W), rng) for k in range(16)]
+    return K, T, bg, frames
+
+
+def _segment(K, T, bg, f, prev):
+    am = render_arm_mask(f.arm_vertices, f.arm_triangles, K, T, (H, W), P.arm_margin_px, f.depth, P.arm_margin_m)
+    return segment_against_background(f.depth, bg, K, T, P, am, prev).points
+
+
+def test_tracks_moving_rope(sequence):
+    K, T, bg, frames = sequence
+    tr = Tracker(P, K, T)
+    errs, aerrs, raw = [], [], []
+    for k, f in enumerate(frames):
+        pts = _segment(K, T, bg, f, tr.keypoints)
+        r = tr.initialise(pts)[1] if k == 0 else tr.step(pts)
+        assert r.status == TrackStatus.OK
+        assert r.edge_rmse_mm < 5.0 and r.chamfer_mm < 3.0
+        errs.append(surface_error_mm(r.keypoints, f.centreline, f.radius, polyline=True))
+        aerrs.append(anchor_error_mm(r.keypoints[tr.topology.anchor_idx], f.anchors))
+        raw.append(r.keypoints)
+        assert r.smoothed.shape == r.keypoints.shape
+    assert max(errs) < 3.0  # mm, to the rope's skin
+    assert max(aerrs) < 12.0  # mm, ends (on the skin tip vs the centreline end)
+    # the keypoints really moved with the rope (not stuck at the start)
+    assert np.linalg.norm(raw[-1] - raw[0], axis=1).max() > 0.05
+
+
+def test_loss_of_track_is_reported(sequence):
+    K, T, bg, frames = sequence
+    tr = Tracker(P, K, T)
+    tr.initialise(_segment(K, T, bg, frames[0], None))
+    statuses = [tr.step(np.zeros((0, 3))).status for _ in range(P.lost_after_frames)]
+    assert statuses[:-1] == [TrackStatus.DEGRADED] * (P.lost_after_frames - 1)
+    assert statuses[-1] == TrackStatus.LOST and not tr.initialised
+    assert tr.step(_segment(K, T, bg, frames[1], None)).status == TrackStatus.UNINITIALISED
+    # a cloud that is not the object (a far-away blob) is bad too
+    tr.initialise(_segment(K, T, bg, frames[0], None))
+    blob = np.random.default_rng(0).normal([0.0, 0.0, 0.5], 0.01, (500, 3))
+    assert tr.step(blob).status == TrackStatus.DEGRADED
+
+
+def test_grasped_keypoint_follows_the_gripper(sequence):
+    K, T, bg, frames = sequence
+    tr = Tracker(P, K, T)
+    f0 = frames[0]
+    tcp = f0.centreline[[0]] + [0.0, 0.0, 0.005]
+    _, r = tr.initialise(_segment(K, T, bg, f0, None), tcp=tcp)
+    assert r.grasp_idx[0] in (0, P.n_keypoints_1d - 1)
+    f1 = frames[1]
+    tcp1 = f1.centreline[[0]] + [0.0, 0.0, 0.005]
+    r = tr.step(_segment(K, T, bg, f1, tr.keypoints), tcp=tcp1, gripper_closed=np.array([True]))
+    assert np.allclose(r.keypoints[r.grasp_idx[0]], tcp1[0])
+    r = tr.step(_segment(K, T, bg, f1, tr.keypoints), tcp=tcp1, gripper_closed=np.array([False]))
+    assert r.grasp_idx[0] == -1
+
+
+def test_grasp_index_functions():
+    X = np.array([[0.0, 0, 0], [0.1, 0, 0], [0.2, 0, 0]])
+    assert assign_grasp_indices(X, np.array([[0.19, 0, 0], [1.0, 0, 0]]), 0.05).tolist() == [2, -1]
+    g = update_grasp_indices(np.array([2, -1]), X, np.array([[0.5, 0, 0], [0.11, 0, 0]]), np.array([True, True]), 0.05)
+    assert g.tolist() == [2, 1]  # held stays held; newly closed grasps the nearest
+    g = update_grasp_indices(g, X, np.zeros((2, 3)), np.array([False, True]), 0.05)
+    assert g.tolist() == [-1, 1]
+
+
+def test_anchor_matching_gates_and_kinds():
+    prev = np.array([[0.0, 0, 0], [1.0, 0, 0]])
+    kinds = np.array([0, 1])
+    det = np.array([[1.01, 0, 0], [0.02, 0, 0], [5.0, 0, 0]])
+    assert match_anchors(prev, kinds, det, np.array([1, 0, 0]), 0.05, True).tolist() == [1, 0]
+    assert match_anchors(prev, kinds, det, np.array([0, 1, 0]), 0.05, True).tolist() == [-1, -1]
+    far = np.array([[0.1, 0, 0]])
+    assert match_anchors(prev[:1], kinds[:1], far, np.array([0]), 0.05, True).tolist() == [-1]
+    assert match_anchors(prev[:1], kinds[:1], far, np.array([0]), 0.05, True, regate_m=0.15).tolist() == [0]
+
+
+def test_smoothing():
+    traj = np.arange(6, dtype=float)[:, None, None] * np.ones((6, 2, 3))
+    assert np.allclose(smooth_causal(traj, 3)[:, 0, 0], [0, 0.5, 1, 2, 3, 4])
+    assert np.allclose(smooth_symmetric(traj, 3)[:, 0, 0], [0.5, 1, 2, 3, 4, 4.5])
+    assert np.allclose(smooth_symmetric(traj, 1), traj)
