@@ -26,6 +26,7 @@ from drivers.types import CameraIntrinsics, GripperState, JointMotion, JointStat
 from trajectories.kinematics import PandaKinematics
 
 PHYSICS_CHUNK = 0.01  # s; the TCPs move linearly within a chunk (the sim substeps further)
+QUEUE_DEPTH = 2  # frames the fake camera keeps for a late reader (older ones are dropped)
 START_TOLERANCE = 0.02  # rad; a motion must start this close to the arm's current joints
 
 
@@ -437,6 +438,8 @@ class FakeGripper:
 class FakeCamera:
     """An RGB-D camera rendering the station at ``fps`` on the clock's 1/fps grid, with ground truth.
 
+    Frame k is captured at clock time k / fps and ``frame_number`` is k: a device counter running
+    since the clock's epoch, so it continues across reconnects and station rebuilds on one clock.
     Faults: :meth:`inject_fault` drops the next ``count`` frames ("drop": a gap in frame_number)
     or makes the next read raise :class:`DeviceError` ("error").
     """
@@ -460,7 +463,6 @@ class FakeCamera:
         self._intrinsics = CameraIntrinsics.from_fov(config.width, config.height, config.hfov_deg)
         self._renderer: SceneRenderer | None = None
         self._last_index: int | None = None
-        self._first_index = 0
         self._drops = 0
         self._errors: list[bool] = []
         self._lock = threading.Lock()
@@ -500,18 +502,20 @@ class FakeCamera:
                 self._errors.extend([recoverable] * int(count))
 
     def read(self, timeout: float = 1.0) -> RGBDFrame:
-        """Sleep to the next frame time on the 1/fps grid, step the station there and render it."""
+        """The next unread frame on the 1/fps grid (sleeping until its time), rendered from the station.
+
+        A reader later than ``QUEUE_DEPTH`` frames loses the older ones (a gap in frame_number).
+        """
         with self._lock:
             renderer = self._renderer
             if renderer is None:
                 raise DeviceError(f"camera {self.id}: not connected", recoverable=True)
             fps = self.config.fps
             now = self.clock.now()
-            k = math.floor(now * fps + 1e-6) + 1
-            if self._last_index is None:
-                self._first_index = k
-            else:
-                k = max(k, self._last_index + 1)
+            if self._last_index is None:  # first frame: the one captured at or after now
+                k = math.ceil(now * fps - 1e-6)
+            else:  # the next unread frame, unless it fell out of the device queue meanwhile
+                k = max(self._last_index + 1, math.floor(now * fps + 1e-6) - QUEUE_DEPTH + 1)
             k += self._drops
             self._drops = 0
             t_frame = k / fps
@@ -535,6 +539,6 @@ class FakeCamera:
                 intrinsics=self._intrinsics,
                 device_stamp=t_frame,
                 host_stamp=self.clock.now(),
-                frame_number=k - self._first_index,
+                frame_number=k,
                 ground_truth=gt,
             )
