@@ -127,7 +127,7 @@ def object_image(
     uv, z = project_points(cloud, K, T_world_cam)
     zmed = float(np.median(z)) if len(z) else 1.0
     f = 0.5 * (K[0, 0] + K[1, 1])
-    s = float(min(1.0, pixel_m * f / zmed))
+    s = float(min(1.0, zmed / (f * pixel_m)))
     Ks = scale_intrinsics(K, s)
     uvs = (uv + 0.5) * s - 0.5
     pad = int(np.ceil(radius_m * f * s / zmed)) + 3
