@@ -10,7 +10,7 @@ from tracking import synthetic as S
 from tracking.anchors import CORNER, JUNCTION, LEAF, detect_anchors_1d
 from tracking.classify import classify_object
 from tracking.geometry import farthest_point_sampling
-from tracking.init import allocate, initialise
+from tracking.init import initialise
 from tracking.metrics import edge_rmse_mm
 from tracking.params import TrackingParams
 from tracking.segmentation import background_from_depths, segment_against_background
@@ -118,11 +118,9 @@ def test_cloth_grid(scene, cloth):
     assert cKDTree(cs.reshape(-1, 3)).query(ini.keypoints)[0].max() < 0.01
 
 
-def test_fps_and_allocation():
+def test_farthest_point_sampling():
     rng = np.random.default_rng(0)
     pts = rng.uniform(0, 1, (2000, 3))
     idx = farthest_point_sampling(pts, 10, seeds=np.zeros((1, 3)))
     assert len(set(idx.tolist())) == 10
     assert np.linalg.norm(pts[idx[0]]) > 1.5  # first pick is far from the seed
-    assert allocate(10, np.array([0.25, 0.22, 0.22])).tolist() == [4, 3, 3]
-    assert allocate(7, np.array([1.0, 0.0])).tolist() == [7, 0]

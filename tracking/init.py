@@ -58,18 +58,6 @@ class Initialisation:
     object_class: ObjectClass
 
 
-def allocate(total: int, weights: np.ndarray) -> np.ndarray:
-    """Split ``total`` items over weights (B,) proportionally (largest remainder) -> (B,) int64."""
-    w = np.maximum(np.asarray(weights, np.float64), 0)
-    if total <= 0 or w.sum() <= 0:
-        return np.zeros(len(w), np.int64)
-    q = total * w / w.sum()
-    n = np.floor(q).astype(np.int64)
-    rest = total - n.sum()
-    n[np.argsort(-(q - n), kind="stable")[:rest]] += 1
-    return n
-
-
 def _polyline_arc(poly: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poly, axis=0), axis=1))])
 
