@@ -5,6 +5,7 @@ Run: .venv/bin/python benchmarks/render.py   (prints figures; no assertions)
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -20,14 +21,16 @@ HOME = {
 }
 
 
-def median_ms(fn, n: int) -> float:
+def median_ms(fn, n: int) -> str:
+    """Median wall time and median process CPU time (all threads) of ``fn``, as text."""
     fn()  # warm-up
-    ts = []
+    wall, cpu = [], []
     for _ in range(n):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         fn()
-        ts.append(time.perf_counter() - t)
-    return 1e3 * float(np.median(ts))
+        wall.append(time.perf_counter() - t)
+        cpu.append(time.process_time() - c)
+    return f"{1e3 * np.median(wall):6.1f} ms wall, {1e3 * np.median(cpu):6.1f} ms CPU"
 
 
 def station(kind: str) -> SimStation:
@@ -40,14 +43,14 @@ def station(kind: str) -> SimStation:
 
 
 def main() -> None:
-    print("scene: both arms + object + 6 clutter boxes, mock camera pose")
+    print(f"scene: both arms + object + 6 clutter boxes, mock camera pose; load average {os.getloadavg()[0]:.2f}")
     for kind in ("rope", "branched_rope", "cloth"):
         st = station(kind)
         sim = st.sim
         poses = {n: a.tcp_at(0.0) for n, a in st.arms.items()}
         closed = {"left": True, "right": True}
         phys = median_ms(lambda: sim.step(1 / 30, poses, closed), 30)  # noqa: B023
-        print(f"{kind:14s} physics: {sim.n_particles} particles, {phys:6.2f} ms per 1/30 s frame (median of 30)")
+        print(f"{kind:14s} physics: {sim.n_particles} particles, {phys} per 1/30 s frame (median of 30)")
         arms, obj = st.arm_meshes(st.time), st.object_mesh()
         for w, h in ((640, 480), (1280, 720)):
             cfg = FakeCameraConfig(width=w, height=h, pose=mock_camera_pose())
@@ -55,12 +58,12 @@ def main() -> None:
             r = SceneRenderer(cam.intrinsics, cfg.pose.matrix(), clutter=cfg.clutter)
             k = iter(range(10**6))
             ms = median_ms(lambda: r.render(arms, obj, frame_index=next(k)), 15)  # noqa: B023
-            print(f"{kind:14s} render {w}x{h}: {ms:6.1f} ms (median of 15)")
+            print(f"{kind:14s} render {w}x{h}: {ms} (median of 15)")
     st = station("rope")
     cam = FakeCamera(FakeCameraConfig(width=640, height=480, pose=mock_camera_pose()), clock=st.clock, station=st)
     cam.connect()
     ms = median_ms(cam.read, 30)
-    print(f"FakeCamera.read() end to end, rope, 640x480: {ms:6.1f} ms (median of 30)")
+    print(f"FakeCamera.read() end to end, rope, 640x480: {ms} (median of 30)")
 
 
 if __name__ == "__main__":

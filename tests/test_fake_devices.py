@@ -190,3 +190,24 @@ def test_station_episode_facts_and_object_swap(station):
     f = cam.read()
     assert f.ground_truth.category == "cloth" and f.ground_truth.keypoints.shape == (36, 3)
     assert f.ground_truth.grasp == {"left": 0, "right": 5}
+
+
+def test_physics_does_not_depend_on_query_pattern():
+    def run(state_rate_reads: bool) -> np.ndarray:
+        clock = SimClock(0.0)
+        st = SimStation(SimObjectConfig(kind="rope"), clock, settle_time=0.3)
+        arms = {
+            n: FakeArm(FakeArmConfig(base=Pose(xyz=(0, BASE_Y[n], 0)), home=HOME[n]), name=n, clock=clock, station=st)
+            for n in ("left", "right")
+        }
+        g = create_gripper(FakeGripperConfig(), name="left", clock=clock, station=st)
+        q0 = np.array(HOME["left"])
+        arms["left"].start_motion(motion(q0, q0 + 0.2, 1.0))
+        for k in range(1, 301 if state_rate_reads else 2):  # many gripper reads, or one
+            clock.sleep_until(k / 250 if state_rate_reads else 1.2)
+            g.read_state()
+        clock.sleep_until(1.2)
+        st.advance_to(1.2)
+        return st.sim.positions
+
+    assert np.array_equal(run(True), run(False))

@@ -2,7 +2,7 @@
 
 :class:`SimStation` owns the object simulation and advances it *lazily*: whenever a device needs
 the scene at time ``t`` (a camera frame, a gripper's grasp state) the physics catches up to ``t``
-in 10 ms chunks, using the arms' joint states and the grippers' openings at those times. The
+on a fixed 300 Hz grid, using the arms' joint states and the grippers' openings at those times. The
 devices implement the Protocols of :mod:`drivers.base` and register with the station on
 construction by name ("left" / "right"). Everything is timed on the injected :class:`Clock`,
 so with a ``SimClock`` a run is deterministic and as fast as the CPU allows.
@@ -25,7 +25,8 @@ from drivers.fake.sim_object import SimGroundTruth, SimObject
 from drivers.types import CameraIntrinsics, GripperState, JointMotion, JointState, RGBDFrame
 from trajectories.kinematics import PandaKinematics
 
-PHYSICS_CHUNK = 0.01  # s; the TCPs move linearly within a chunk (the sim substeps further)
+PHYSICS_RATE = 300  # Hz; physics substeps on a fixed grid of absolute times (SimObject.max_substep)
+SUBSTEPS_PER_CHUNK = 1  # TCP poses from FK at every substep: results independent of the query pattern
 QUEUE_DEPTH = 2  # frames the fake camera keeps for a late reader (older ones are dropped)
 START_TOLERANCE = 0.02  # rad; a motion must start this close to the arm's current joints
 
@@ -34,7 +35,8 @@ class SimStation:
     """The simulated world: one deformable object, the registered arms/grippers/cameras, one clock.
 
     obj: the object to build; clock: shared time; seed: offsets the object's seed (determinism).
-    The object is created lazily, hanging from the grippers' home TCPs, at the first query.
+    The object is created lazily at the first query, but as of the construction time: hanging
+    from the TCPs of the closed grippers' arms at that time, settled.
     """
 
     def __init__(
@@ -56,7 +58,9 @@ class SimStation:
         self._obj_config = obj
         self._n_keypoints = n_keypoints
         self._sim: SimObject | None = None
-        self.time = float(clock.now())
+        self._t_origin = float(clock.now())
+        self.time = self._t_origin
+        self._step_index = 0
         self._contact = False
 
     # ------------------------------------------------------------ registration
@@ -79,6 +83,7 @@ class SimStation:
         """Swap the object: the new one is hung from the grippers at the next query."""
         with self._lock:
             self._obj_config, self._n_keypoints, self._sim = obj, n_keypoints, None
+            self._t_origin = float(self.clock.now())
 
     # ------------------------------------------------------------ simulation
     @property
@@ -102,14 +107,15 @@ class SimStation:
         if self.seed:
             cfg = cfg.model_copy(update={"seed": cfg.seed + self.seed})
         sim = SimObject(cfg, self._n_keypoints)
-        t = float(self.clock.now())
+        t = self._t_origin  # the object exists from construction (or swap), whenever first queried
         holders = [
             (n, self.arms[n].tcp_at(t))
             for n in self._gripper_names()
             if n not in self.grippers or self.grippers[n].commanded_closed
         ]
         sim.reset(holders[:2], settle_time=self.settle_time)
-        self._sim, self.time, self._contact = sim, t, False
+        self._step_index = math.floor(t * PHYSICS_RATE + 1e-6)
+        self._sim, self.time, self._contact = sim, self._step_index / PHYSICS_RATE, False
         for g in self.grippers.values():
             g._sync_start(t)  # noqa: SLF001 - the station owns the grippers' contact state
 
@@ -119,15 +125,22 @@ class SimStation:
         return True if g is None else g.pinching_at(t)
 
     def advance_to(self, t: float) -> None:
-        """Run the physics up to time ``t`` (no-op when already there; never goes back)."""
+        """Run the physics up to the last substep-grid time <= ``t`` (never goes back).
+
+        The physics runs on a fixed grid of absolute times (multiples of 1/PHYSICS_RATE s), so
+        its result does not depend on when or how often devices query it.
+        """
         with self._lock:
             sim = self.sim
-            while self.time < t - 1e-9:
-                t_next = min(float(t), self.time + PHYSICS_CHUNK)
-                names = self._gripper_names()
-                poses = {n: self.arms[n].tcp_at(t_next) for n in names}
-                closed = {n: self._closed_at(n, t_next) for n in names}
-                sim.step(t_next - self.time, poses, closed)
+            target = math.floor(float(t) * PHYSICS_RATE + 1e-6)
+            names = self._gripper_names()
+            while self._step_index < target:
+                n = min(SUBSTEPS_PER_CHUNK, target - self._step_index)
+                t_next = (self._step_index + n) / PHYSICS_RATE
+                poses = {name: self.arms[name].tcp_at(t_next) for name in names}
+                closed = {name: self._closed_at(name, t_next) for name in names}
+                sim.step(n / PHYSICS_RATE, poses, closed)
+                self._step_index += n
                 self.time = t_next
                 self._contact |= bool((sim.x[:, 2] <= sim.radius * 1.05).any())
 
@@ -416,10 +429,10 @@ class FakeGripper:
 
     def command(self, closed: bool, width: float | None = None, force: float | None = None) -> None:
         """Start closing (grasp) or opening to ``width`` m (default fully); returns at once."""
+        now = self.clock.now()
+        if self.station is not None:  # outside our lock: the station takes its lock, then ours
+            self.station.advance_to(now)  # the physics catches up with the old command first
         with self._lock:
-            now = self.clock.now()
-            if self.station is not None:
-                self.station.advance_to(now)  # grasp / release from the current scene
             w = self.width_at(now)
             self.commanded_closed = bool(closed)
             self._w0, self._t0 = w, now
