@@ -500,7 +500,12 @@ def read_episodes(path: str | Path, camera_id: str | None = None) -> Sequence:
 
     has_states = any(np.isfinite(ep.state_stamps).any() for ep in episodes)
     out: dict[str, Any] = {}
+    state_offset = 0.0  # worst |frame host stamp - aligned state stamp|, s
     if has_states:
+        for ep in episodes:
+            if np.isfinite(ep.state_stamps).any():
+                aligned = per_frame(ep, ep.state_stamps[:, None], np.nan)[:, 0]
+                state_offset = max(state_offset, float(np.max(np.abs(aligned - ep.host_stamps), initial=0.0)))
         for arm in ("left", "right"):
             out[f"q_{arm}"] = np.concatenate([per_frame(ep, ep.q[arm], np.nan) for ep in episodes])
             out[f"grasped_{arm}"] = np.concatenate([per_frame(ep, ep.grasped[arm], False) for ep in episodes])
@@ -518,6 +523,7 @@ def read_episodes(path: str | Path, camera_id: str | None = None) -> Sequence:
         episodes=[ep.metadata for ep in episodes],
         skipped_unfinished=[str(a) for a in active],
         incomplete_frames=sum(ep.incomplete_frames for ep in episodes),
+        max_state_offset_s=state_offset if has_states else None,
         world_frame="the station's world frame (see calibration)",
     )
     return Sequence(

@@ -137,6 +137,7 @@ def test_episode_round_trip_and_joint_alignment(tmp_path: Path) -> None:
     np.testing.assert_allclose(seq.tcp_right[:, :3, :3], Rotation.from_rotvec(
         np.stack([np.zeros(6), nearest, np.zeros(6)], axis=1)).as_matrix(), atol=1e-12)
     assert seq.metadata["object"] == "rope" and seq.metadata["files"] == [str(p)]
+    assert seq.metadata["max_state_offset_s"] == pytest.approx(np.abs(nearest - seq.stamps).max())
     assert seq.ground_truth is None
 
 
