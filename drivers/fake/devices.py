@@ -87,6 +87,11 @@ class SimStation:
 
     # ------------------------------------------------------------ simulation
     @property
+    def object_config(self) -> SimObjectConfig:
+        """The configuration of the current object."""
+        return self._obj_config
+
+    @property
     def sim(self) -> SimObject:
         """The object simulation (created and settled on first use)."""
         with self._lock:
@@ -414,7 +419,7 @@ class FakeGripper:
         with self._lock:
             if not self.commanded_closed:
                 return False
-            r = self.station._obj_config.radius if self.station is not None else 0.0  # noqa: SLF001
+            r = self.station.object_config.radius if self.station is not None else 0.0
             travel = self.config.speed * max(0.0, t - self._t0)
             return self._w0 - travel <= 2.0 * r + 0.001
 
@@ -498,7 +503,7 @@ class FakeCamera:
                 flying_pixels=c.flying_pixels,
                 clutter=c.clutter,
                 seed=c.seed,
-                object_color=self.station._obj_config.color,  # noqa: SLF001
+                object_color=self.station.object_config.color,
             )
         self._last_index = None
 
@@ -543,6 +548,7 @@ class FakeCamera:
             st = self.station
             st.advance_to(t_frame)
             gt = st.ground_truth()
+            renderer.object_color = np.asarray(st.object_config.color, dtype=np.float32)  # after set_object too
             out = renderer.render(st.arm_meshes(t_frame), st.object_mesh(), frame_index=k, with_mask=self.render_mask)
             self.last_mask = out.mask
             return RGBDFrame(
