@@ -42,16 +42,6 @@ class SimGroundTruth(GroundTruth):
     time: float = 0.0
 
 
-@dataclass(frozen=True)
-class _ColourClass:
-    """Constraints that share no particle: i, j (C,) int64; rest (C,) m; stiffness (C,) in [0, 1]."""
-
-    i: np.ndarray
-    j: np.ndarray
-    rest: np.ndarray
-    stiffness: np.ndarray
-
-
 @dataclass
 class _Topology:
     """Particles, constraints and the keypoint/centreline maps of one object (built once)."""
