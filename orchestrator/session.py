@@ -228,6 +228,7 @@ class Session:
         self._state_key = ""
         self._max_seconds: float | None = None
         self._last_frame_number: int | None = None
+        self._run_info: dict[str, Any] = {}
 
     # ------------------------------------------------------------------ public
     def run(self, max_seconds: float | None = None, loop: bool = False) -> SessionSummary:
@@ -370,6 +371,10 @@ class Session:
         chunk = -1
         episode_frames = 0
         base_meta = self._base_metadata(item, station, motion)
+        self._run_info = {
+            "object": item.object.name, "category": item.object.category, "program": item.program,
+            "speed": item.speed, "run_index": item.index, "n_keypoints": item.object.n_keypoints,
+        }
         poller = None if self.sim_time else _StatePoller(lambda: self._sample_states(station), self.state_rate)
         next_state_t = self.clock.now()
         try:
@@ -448,7 +453,7 @@ class Session:
         self.summary.frames_captured += 1
         self._recorder.frame(frame, station.T_world_cam)
         if self.bus is not None:
-            self.bus.put(self._frame_key, encode_frame(frame, station.T_world_cam, station.camera.id))
+            self.bus.put(self._frame_key, encode_frame(frame, station.T_world_cam, station.camera.id, self._run_info))
 
     def _open_episode(self, meta: dict[str, Any]) -> None:
         assert self._recorder is not None

@@ -9,7 +9,8 @@ Keys (``<prefix>/<station>/...``):
   The header holds ``frame_number``, ``device_stamp``, ``host_stamp`` (s), ``width``, ``height``,
   ``color_encoding`` ("rgb8", row-major H×W×3), ``depth_encoding`` ("16UC1", row-major H×W,
   little-endian), ``depth_scale`` (m per unit), ``K`` (9 floats, row-major), ``T_world_cam``
-  (16 floats, row-major, metres), ``camera_id`` and, in mock mode, ``ground_truth``.
+  (16 floats, row-major, metres), ``camera_id``, ``run`` (object, category, program, speed,
+  run_index of the program run being recorded) and, in mock mode, ``ground_truth``.
 - ``arms/state``: JSON ``{"stamp": s, "left": {"q": [7], "dq": [7], "gripper_width": m,
   "grasped": bool}, "right": {...}, "u": [12]}`` — u is the paper's arm input (per arm: TCP
   position m + rotation vector rad, world frame; left then right).
@@ -38,6 +39,7 @@ class FrameMessage:
     frame: RGBDFrame
     T_world_cam: np.ndarray  # (4, 4)
     camera_id: str
+    run: dict[str, Any]  # what is being recorded: object, category, program, speed, run_index
 
 
 def _gt_to_json(gt: GroundTruth) -> dict[str, Any]:
@@ -62,8 +64,8 @@ def _gt_from_json(d: dict[str, Any]) -> GroundTruth:
     )
 
 
-def encode_frame(frame: RGBDFrame, T_world_cam: np.ndarray, camera_id: str) -> bytes:
-    """Serialise a frame for the bus (see module docstring for the layout)."""
+def encode_frame(frame: RGBDFrame, T_world_cam: np.ndarray, camera_id: str, run: dict[str, Any] | None = None) -> bytes:
+    """Serialise a frame for the bus (see module docstring for the layout); ``run`` says what is recorded."""
     color = np.ascontiguousarray(frame.color, dtype=np.uint8)
     depth = np.ascontiguousarray(frame.depth, dtype="<u2")
     k = frame.intrinsics
@@ -81,6 +83,7 @@ def encode_frame(frame: RGBDFrame, T_world_cam: np.ndarray, camera_id: str) -> b
         "camera_id": camera_id,
         "color_size": color.nbytes,
         "depth_size": depth.nbytes,
+        "run": run or {},
     }
     if frame.ground_truth is not None:
         header["ground_truth"] = _gt_to_json(frame.ground_truth)
@@ -108,7 +111,7 @@ def decode_frame(payload: bytes | memoryview) -> FrameMessage:
         color, depth.astype(np.uint16, copy=False), float(h["depth_scale"]), intr,
         float(h["device_stamp"]), float(h["host_stamp"]), int(h["frame_number"]), gt,
     )
-    return FrameMessage(frame, np.asarray(h["T_world_cam"]).reshape(4, 4), str(h["camera_id"]))
+    return FrameMessage(frame, np.asarray(h["T_world_cam"]).reshape(4, 4), str(h["camera_id"]), h.get("run", {}))
 
 
 def encode_json(obj: dict[str, Any]) -> bytes:

@@ -1,0 +1,183 @@
+"""The frame-by-frame TrackDeform3D pipeline: references -> segmentation -> initialisation -> tracking.
+
+Stateful but free of I/O: the zenoh worker and the offline ``trackdeform track`` feed it the same
+arrays (depth, arm meshes, gripper TCPs) and get the same results.
+
+States: ``reference`` (the first depth D0 is kept), ``waiting`` (until the arms have moved the
+object enough that differencing against the references isolates it), ``tracking``. A LOST track
+goes back to ``waiting`` with the recent frames as references, so it re-initialises by itself.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tracking.init import InitialisationError, Topology
+from tracking.params import TrackingParams
+from tracking.segmentation import (
+    background_from_depths,
+    render_arm_mask,
+    segment_against_background,
+    segment_by_difference,
+    update_background,
+)
+from tracking.tracker import Tracker, TrackStatus
+
+
+@dataclass(frozen=True)
+class PipelineOutput:
+    """One frame's outcome.
+
+    status: "reference" | "waiting" | "init" | "tracking" | "degraded" | "lost".
+    keypoints: (N, 3) float64 m world (raw), smoothed: (N, 3) causal moving average; empty before init.
+    grasp_idx: (G,) int64 keypoint held by each gripper (-1: none). abs_mm / cd_mm: the paper's per-frame
+    edge-length RMSE and keypoint-to-cloud distance (nan before init). n_points: segmented cloud size.
+    """
+
+    status: str
+    keypoints: np.ndarray
+    smoothed: np.ndarray
+    grasp_idx: np.ndarray
+    abs_mm: float
+    cd_mm: float
+    n_points: int
+    topology: Topology | None = None
+    cloud: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)), repr=False)
+    note: str = ""
+
+
+_EMPTY = np.zeros((0, 3))
+
+
+class LivePipeline:
+    """Feed frames with :meth:`process`; K (3, 3) and T_world_cam (4, 4) are fixed for a sequence."""
+
+    def __init__(
+        self,
+        params: TrackingParams,
+        K: np.ndarray,
+        T_world_cam: np.ndarray,
+        kind: str | None = None,
+        min_init_points: int = 150,
+        reference_gap: int = 10,
+    ) -> None:
+        """kind: "1d"/"2d" when the object's category is known (else classified from the cloud).
+
+        min_init_points: a difference segmentation smaller than this (voxels) waits for more motion.
+        reference_gap: frames between the extra difference references kept from the recent past.
+        """
+        self.params = params
+        self.K = np.asarray(K, np.float64)
+        self.T = np.asarray(T_world_cam, np.float64)
+        self.kind = kind
+        self.min_init_points = min_init_points
+        self.reference_gap = reference_gap
+        self.tracker = Tracker(params, self.K, self.T)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything: the next frame becomes the reference D0."""
+        self.tracker.reset()
+        self._d0: np.ndarray | None = None
+        self._recent: deque[np.ndarray] = deque(maxlen=3)
+        self._since_recent = 0
+        self.background: np.ndarray | None = None
+        self.init_failures = 0
+        self.last_init_error = ""
+
+    @property
+    def state(self) -> str:
+        """``reference``, ``waiting`` or ``tracking``."""
+        if self._d0 is None:
+            return "reference"
+        return "tracking" if self.tracker.initialised else "waiting"
+
+    def arm_mask(
+        self, depth: np.ndarray, arm_vertices: np.ndarray | None, arm_triangles: np.ndarray | None
+    ) -> np.ndarray | None:
+        """(H, W) bool pixels of the arms (rendered at their measured joints), or None without meshes."""
+        if arm_vertices is None or arm_triangles is None or len(arm_triangles) == 0:
+            return None
+        p = self.params
+        return render_arm_mask(
+            arm_vertices, arm_triangles, self.K, self.T, depth.shape, p.arm_margin_px, depth, p.arm_margin_m,
+            p.arm_render_stride,
+        )
+
+    def process(
+        self,
+        depth: np.ndarray,
+        arm_vertices: np.ndarray | None = None,
+        arm_triangles: np.ndarray | None = None,
+        tcp: np.ndarray | None = None,
+        gripper_closed: np.ndarray | None = None,
+    ) -> PipelineOutput:
+        """One frame: depth (H, W) float32 m; both arms as one mesh (V, 3) m world + (F, 3) int;
+        tcp (G, 3) m world and gripper_closed (G,) bool of the grippers (G = 2: left, right)."""
+        arm = self.arm_mask(depth, arm_vertices, arm_triangles)
+        if self._d0 is None:
+            self._d0 = depth.copy()
+            return self._empty("reference")
+        if not self.tracker.initialised:
+            return self._try_initialise(depth, arm, tcp)
+        return self._track(depth, arm, tcp, gripper_closed)
+
+    # ---------------------------------------------------------------- internals
+    def _empty(self, status: str, n_points: int = 0, note: str = "") -> PipelineOutput:
+        nan = float("nan")
+        return PipelineOutput(status, _EMPTY, _EMPTY, np.zeros(0, np.int64), nan, nan, n_points, note=note)
+
+    def _references(self) -> np.ndarray:
+        assert self._d0 is not None
+        return np.stack([self._d0, *self._recent])
+
+    def _remember(self, depth: np.ndarray) -> None:
+        self._since_recent += 1
+        if self._since_recent >= self.reference_gap:
+            self._recent.append(depth.copy())
+            self._since_recent = 0
+
+    def _try_initialise(self, depth: np.ndarray, arm: np.ndarray | None, tcp: np.ndarray | None) -> PipelineOutput:
+        refs = self._references()
+        seg = segment_by_difference(refs, depth, self.K, self.T, self.params, arm)
+        self._remember(depth)
+        if len(seg.points) < self.min_init_points:
+            return self._empty("waiting", len(seg.points), "waiting for the arms to move the object")
+        try:
+            ini, res = self.tracker.initialise(seg.points, tcp=tcp, kind=self.kind)
+        except InitialisationError as e:
+            self.init_failures += 1
+            self.last_init_error = str(e)
+            return self._empty("waiting", len(seg.points), f"initialisation failed: {e}")
+        bg = background_from_depths(refs)
+        self.background = update_background(bg, depth, self.params, arm)
+        return self._output("init", res, seg.points)
+
+    def _track(
+        self, depth: np.ndarray, arm: np.ndarray | None, tcp: np.ndarray | None, closed: np.ndarray | None
+    ) -> PipelineOutput:
+        assert self.background is not None
+        seg = segment_against_background(
+            depth, self.background, self.K, self.T, self.params, arm, self.tracker.keypoints
+        )
+        topology = self.tracker.topology
+        res = self.tracker.step(seg.points, tcp=tcp, gripper_closed=closed)
+        self.background = update_background(self.background, depth, self.params, arm)
+        self._remember(depth)
+        if res.status == TrackStatus.LOST:
+            # back to waiting: the recent frames (object elsewhere) become the references
+            self._d0 = self._recent[0] if self._recent else depth.copy()
+            self._recent.clear()
+            out = self._output("lost", res, seg.points)
+            return PipelineOutput(**{**out.__dict__, "topology": topology})
+        return self._output("tracking" if res.status == TrackStatus.OK else "degraded", res, seg.points)
+
+    def _output(self, status: str, res: object, cloud: np.ndarray) -> PipelineOutput:
+        return PipelineOutput(
+            status, res.keypoints, res.smoothed, np.asarray(res.grasp_idx, np.int64),  # type: ignore[attr-defined]
+            float(res.edge_rmse_mm), float(res.chamfer_mm), int(res.n_points),  # type: ignore[attr-defined]
+            self.tracker.topology, cloud,
+        )
