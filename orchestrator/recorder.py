@@ -147,7 +147,7 @@ class EpisodeWriter:
                 "/ground_truth/keypoints",
                 {"frame_number": frame.frame_number, "keypoints": np.round(gt.keypoints, 6).tolist(),
                  "edges": gt.edges.tolist(), "anchors": gt.anchors.tolist(), "radius": gt.radius,
-                 "category": gt.category},
+                 "category": gt.category, "centreline": _subsample(gt.centreline, 400)},
                 t,
             )
         self.n_frames += 1
@@ -229,6 +229,12 @@ class EpisodeWriter:
             finally:
                 self._file.close()
                 self.closed = True
+
+
+def _subsample(points: np.ndarray, n: int) -> list[list[float]]:
+    """At most ``n`` evenly picked rows of points (M, 3), rounded to 0.1 mm, as lists."""
+    idx = np.unique(np.linspace(0, len(points) - 1, min(n, len(points))).round().astype(int)) if len(points) else []
+    return np.round(np.asarray(points)[idx], 4).tolist()
 
 
 def _scene_update(SceneUpdate: Any, msg: dict[str, Any], t: float) -> Any:

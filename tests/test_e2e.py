@@ -83,3 +83,44 @@ def test_cli_demo_sim_time(tmp_path: Path, port: int) -> None:
     assert proc.returncode == 0, proc.stderr + proc.stdout
     assert "episodes written : 1" in proc.stdout and "frames dropped   : 0" in proc.stdout
     assert read_episode_metadata(out / "episode_000000.mcap")["category"] == "cloth"
+
+
+def test_demo_with_tracking_worker_records_keypoints(tmp_path: Path, port: int) -> None:
+    """The demo starts the zenoh tracking worker; its live keypoints end up in the episodes."""
+    out = tmp_path / "demo"
+    proc = subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", "demo", "--sim-time", "--seconds", "10", "--out", str(out),
+         "--port", str(port), "--object", "rope"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr + proc.stdout + (out / "worker.log").read_text()
+    kps = []
+    for ep in sorted(out.glob("episode_*.mcap")):
+        with open(ep, "rb") as f:
+            kps += [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(topics=["/keypoints"])]
+    tracked = [k for k in kps if k["status"] in ("init", "tracking")]
+    assert tracked, f"no tracked keypoints among {len(kps)} messages; worker log:\n{(out / 'worker.log').read_text()}"
+    k = tracked[-1]
+    assert len(k["keypoints"]) == 20 and len(k["edges"]) == 19 and k["category"] == "dlo"
+    assert set(k["grasp_indices"]) == {"left", "right"}
+    assert k["abs_mm"] is not None and k["abs_mm"] < 10.0
+
+
+def test_offline_track_writes_reference_npz(tmp_path: Path, port: int) -> None:
+    cfg = _mock(port, "rope")
+    data = cfg.model_dump()
+    data["bus"]["enabled"] = False
+    data["station"]["camera"].update(width=640, height=480)  # the mock resolution the tracker is tuned for
+    cfg = type(cfg).model_validate(data)
+    Session(cfg, tmp_path / "rec", SimClock()).run(max_seconds=5.0, loop=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "orchestrator.cli", "track", str(tmp_path / "rec"), "--out", str(tmp_path / "kp"),
+         "--json"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    metrics = json.loads(proc.stdout)
+    assert metrics["tracked_frames"] > 100 and metrics["CD"] < 10.0 and "gt_rmse_mm" in metrics
+    ref = np.load(tmp_path / "kp" / "3d_keypoints.npz")
+    assert ref["full"].shape == (150, 20, 3) and ref["edge_connection"].shape == (19, 2)
+    assert 5.0 < np.nanmedian(ref["reference_lengths"]) < 60.0  # millimetres

@@ -156,3 +156,26 @@ def arm_inputs_batch(left: PandaKinematics, right: PandaKinematics, q_left: np.n
         out[:, c:c + 3] = T[:, :3, 3]
         out[:, c + 3:c + 6] = Rotation.from_matrix(T[:, :3, :3]).as_rotvec() if len(qs) else np.empty((0, 3))
     return out
+
+
+HAND_JOINTS = (7, 8, 9)  # pinocchio joints carrying the hand and the two fingers
+
+
+def hand_mesh(T_world_tcp: np.ndarray, finger_width: float = 0.08) -> tuple[np.ndarray, np.ndarray]:
+    """The Franka Hand and fingers placed at a TCP pose (4, 4), for datasets without joint states.
+
+    Returns vertices (V, 3) float64 m world and triangles (F, 3) int32.
+    """
+    kin = PandaKinematics()
+    q0 = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+    poses = kin.joint_poses(q0, finger_width)
+    T_tcp_world = np.linalg.inv(kin.tcp_pose(q0))
+    verts, tris, offset = [], [], 0
+    for link in panda_link_meshes():
+        if link.joint_index not in HAND_JOINTS:
+            continue
+        T = np.asarray(T_world_tcp) @ T_tcp_world @ poses[link.joint_index] @ link.placement
+        verts.append(link.vertices @ T[:3, :3].T + T[:3, 3])
+        tris.append(link.triangles + offset)
+        offset += len(link.vertices)
+    return np.concatenate(verts), np.concatenate(tris)

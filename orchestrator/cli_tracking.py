@@ -1,0 +1,207 @@
+"""Tracking commands: ``worker`` (live, zenoh), ``watch`` (print live keypoints), ``track`` (offline)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from orchestrator.config import DEFAULT_CONFIG
+
+
+def cmd_worker(args: argparse.Namespace) -> int:
+    """Run the tracking worker (same as ``python -m tracking.worker``)."""
+    from tracking.worker import main as worker_main
+
+    argv = [args.config] + [x for e in (args.connect or []) for x in ("--connect", e)]
+    if args.max_frames:
+        argv += ["--max-frames", str(args.max_frames)]
+    if args.verbose:
+        argv.append("-v")
+    return worker_main(argv)
+
+
+def format_keypoints_line(msg: dict[str, Any]) -> str:
+    """One human line per keypoint message."""
+    n = len(msg.get("keypoints", []))
+    g = msg.get("grasp_indices", {})
+    abs_mm, cd_mm = msg.get("abs_mm"), msg.get("cd_mm")
+    fig = "" if abs_mm is None else f" Abs {abs_mm:5.2f} mm CD {cd_mm:5.2f} mm"
+    return (f"frame {msg.get('frame_number'):7d}  {msg.get('object', '')}/{msg.get('category', '')}  "
+            f"{msg.get('status', ''):9s} N={n:3d}{fig}  grasp L={g.get('left', -1)} R={g.get('right', -1)}")
+
+
+def cmd_watch(args: argparse.Namespace) -> int:
+    """Print live keypoint messages as they arrive (Ctrl-C to stop)."""
+    from orchestrator.bus import Bus, local_endpoints
+    from orchestrator.config import load_config
+    from orchestrator.wire import decode_json
+
+    config = load_config(args.config)
+    endpoints = args.connect or config.bus.connect or local_endpoints(config.bus.listen)
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    bus = Bus(config.bus, config.station.name, listen=False, connect=endpoints)
+    try:
+        sub = bus.subscribe(bus.key("keypoints"), ring=64)
+        print(f"watching {bus.key('keypoints')} via {endpoints}", file=sys.stderr)
+        seen, deadline = 0, (time.monotonic() + args.seconds) if args.seconds else None
+        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+            s = sub.try_recv()
+            if s is None:
+                time.sleep(0.005)
+                continue
+            msg = decode_json(s.payload.to_bytes())
+            print(json.dumps(msg) if args.json else format_keypoints_line(msg), flush=True)
+            seen += 1
+            if args.count and seen >= args.count:
+                break
+    finally:
+        bus.close()
+    return 0
+
+
+def _arm_geometry(seq: Any, i: int, arms: Any) -> tuple[Any, Any, Any, Any]:
+    """Arm meshes, TCPs and closed flags for frame ``i`` of a dataset (whole arms, or hands at the TCPs)."""
+    from trajectories.kinematics import hand_mesh
+
+    closed = None
+    if seq.grasped_left is not None and seq.grasped_right is not None:
+        closed = np.array([bool(seq.grasped_left[i]), bool(seq.grasped_right[i])])
+    if arms is not None and seq.q_left is not None and seq.q_right is not None:
+        state = {
+            "left": {"q": seq.q_left[i], "grasped": bool(closed[0]) if closed is not None else False},
+            "right": {"q": seq.q_right[i], "grasped": bool(closed[1]) if closed is not None else False},
+        }
+        V, F, tcp, c = arms.from_state(state)
+        return V, F, tcp, (c if closed is not None else None)
+    if seq.tcp_left is not None and seq.tcp_right is not None:
+        vl, fl = hand_mesh(seq.tcp_left[i])
+        vr, fr = hand_mesh(seq.tcp_right[i])
+        tcp = np.stack([seq.tcp_left[i][:3, 3], seq.tcp_right[i][:3, 3]])
+        return np.concatenate([vl, vr]), np.concatenate([fl, fr + len(vl)]), tcp, closed
+    return None, None, None, None
+
+
+def track_sequence(seq: Any, params: Any, kind: str | None, progress: bool = True) -> dict[str, Any]:
+    """Run the pipeline over every frame; returns raw keypoints (T, N, 3) m (NaN before init), topology, metrics."""
+    from tracking.metrics import sequence_summary, surface_error_mm
+    from tracking.pipeline import LivePipeline
+    from tracking.worker import ArmModel
+
+    arms = ArmModel(seq.T_world_base) if seq.T_world_base is not None else None
+    pipe = LivePipeline(params, seq.K, seq.T_world_cam, kind)
+    T = len(seq)
+    raw: list[np.ndarray | None] = []
+    statuses: list[str] = []
+    abs_mm, cd_mm, gt_mm, ms = [], [], [], []
+    topology = None
+    t_start = time.monotonic()
+    for i, frame in enumerate(seq.frames):
+        V, F, tcp, closed = _arm_geometry(seq, i, arms)
+        t0 = time.perf_counter()
+        out = pipe.process(frame.depth_m(), V, F, tcp, closed)
+        ms.append((time.perf_counter() - t0) * 1e3)
+        statuses.append(out.status)
+        if len(out.keypoints) and topology is None:
+            topology = out.topology
+        same = topology is not None and len(out.keypoints) == topology.n_keypoints
+        raw.append(out.keypoints if same else None)
+        if same and out.status != "lost":
+            abs_mm.append(out.abs_mm)
+            cd_mm.append(out.cd_mm)
+            gt = frame.ground_truth
+            if gt is not None and len(gt.centreline):
+                gt_mm.append(surface_error_mm(out.keypoints, gt.centreline, gt.radius, polyline=gt.category != "cloth"))
+        if progress and (i % 30 == 0 or i == T - 1):
+            print(f"\rtracking frame {i + 1}/{T}  {out.status:9s} {np.mean(ms[-30:]):6.1f} ms/frame", end="",
+                  file=sys.stderr, flush=True)
+    if progress:
+        print(f"\r{T} frames in {time.monotonic() - t_start:.1f} s" + " " * 30, file=sys.stderr)
+    if topology is None:
+        raise RuntimeError(
+            f"the object was never initialised in {T} frames (last note: {pipe.last_init_error or 'no motion seen'})"
+        )
+    N = topology.n_keypoints
+    full = np.stack([r if r is not None else np.full((N, 3), np.nan) for r in raw])
+    metrics: dict[str, Any] = {"frames": T, "tracked_frames": len(abs_mm)}
+    metrics.update(sequence_summary(np.array(abs_mm), np.array(cd_mm)))
+    metrics["ms_per_frame_median"] = float(np.median(ms))
+    metrics["statuses"] = {s: statuses.count(s) for s in sorted(set(statuses))}
+    if gt_mm:
+        metrics["gt_rmse_mm"] = float(np.sqrt(np.mean(np.square(gt_mm))))
+    return {"raw": full, "topology": topology, "metrics": metrics}
+
+
+def cmd_track(args: argparse.Namespace) -> int:
+    """Track a recorded sequence offline and write ``3d_keypoints.npz`` like the paper's code."""
+    from orchestrator.config import load_config
+    from orchestrator.datasets import DatasetError, read_sequence, write_reference_npz
+    from tracking.tracker import smooth_symmetric
+    from tracking.worker import KIND, tracking_params
+
+    try:
+        seq = read_sequence(args.input)
+    except (DatasetError, FileNotFoundError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    category = args.category or seq.metadata.get("category")
+    config = load_config(args.config)
+    params = tracking_params(config.tracking, category, args.keypoints or seq.metadata.get("n_keypoints"))
+    try:
+        result = track_sequence(seq, params, KIND.get(category or ""), progress=not args.json)
+    except RuntimeError as e:
+        print(f"error: {args.input}: {e}", file=sys.stderr)
+        return 1
+    raw, topo = result["raw"], result["topology"]
+    final = raw.copy()
+    ok = ~np.isnan(raw).any(axis=(1, 2))
+    if ok.any():
+        final[ok] = smooth_symmetric(raw[ok], params.symmetric_window)
+    out = Path(args.out) if args.out else Path(args.input if Path(args.input).is_dir() else Path(args.input).parent)
+    out.mkdir(parents=True, exist_ok=True)
+    write_reference_npz(out / "3d_keypoints.npz", final, topo.edges, topo.rest)
+    np.savez_compressed(out / "3d_keypoints_raw.npz", raw=raw, edges=topo.edges, rest=topo.rest,
+                        anchors=topo.anchor_idx)
+    metrics = {**result["metrics"], "category": category, "output": str(out / "3d_keypoints.npz")}
+    (out / "tracking_metrics.json").write_text(json.dumps(metrics, indent=2))
+    if args.json:
+        print(json.dumps(metrics))
+    else:
+        for k, v in metrics.items():
+            print(f"{k:22s} {v:.2f}" if isinstance(v, float) else f"{k:22s} {v}")
+    return 0
+
+
+def register(sub: Any) -> None:
+    """Add the tracking subcommands to the main parser."""
+    w = sub.add_parser("worker", help="run the live tracking worker (zenoh in, keypoints out)")
+    w.add_argument("config", help="station config (the session's)")
+    w.add_argument("--connect", action="append", help="zenoh endpoint of the daemon or router (repeatable)")
+    w.add_argument("--max-frames", type=int)
+    w.set_defaults(func=cmd_worker)
+
+    wa = sub.add_parser("watch", help="print live keypoints from the bus")
+    wa.add_argument("--config", default=str(DEFAULT_CONFIG))
+    wa.add_argument("--connect", action="append", help="zenoh endpoint (default: the config's listen endpoints)")
+    wa.add_argument("--json", action="store_true", help="print each message as JSON")
+    wa.add_argument("--count", type=int, help="stop after this many messages")
+    wa.add_argument("--seconds", type=float, help="stop after this long")
+    wa.set_defaults(func=cmd_watch)
+
+    t = sub.add_parser("track", help="track keypoints offline in episodes or a paper-layout folder")
+    t.add_argument("input", help="episode .mcap, folder of episodes, or folder with rgbd.npz (paper layout)")
+    t.add_argument("--out", help="output folder (default: beside the input)")
+    t.add_argument("--category", choices=["dlo", "bdlo", "cloth"], help="object category (default: metadata)")
+    t.add_argument("--keypoints", type=int, help="number of keypoints (1D) or total grid size (cloth)")
+    t.add_argument("--config", default=str(DEFAULT_CONFIG), help="tracking parameters from this config")
+    t.add_argument("--json", action="store_true", help="print the metrics as JSON")
+    t.set_defaults(func=cmd_track)
