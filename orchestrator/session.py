@@ -51,6 +51,7 @@ class SessionSummary:
     runs_done: int = 0
     runs_failed: list[str] = field(default_factory=list)
     faults_recovered: int = 0
+    start_skew_s: float = 0.0  # largest delay between the two arms' motion starts over the runs, s
     errors: list[str] = field(default_factory=list)
     recorded_seconds: float = 0.0
     wall_seconds: float = 0.0
@@ -72,6 +73,7 @@ class SessionSummary:
             f"joint states     : {self.state_samples}",
             f"keypoint sets    : {self.keypoints_recorded}",
             f"program runs     : {self.runs_done} done, {len(self.runs_failed)} failed",
+            f"arm start skew   : {self.start_skew_s * 1e3:.3f} ms (largest over the runs)",
             f"recorded         : {self.recorded_seconds:.1f} s in {self.wall_seconds:.1f} s",
             f"output           : {self.out_dir}",
         ]
@@ -212,6 +214,7 @@ class Session:
         progress: Progress | None = None,
         stop_event: threading.Event | None = None,
         state_rate: float = 250.0,
+        on_station: Callable[[Station], None] | None = None,
     ) -> None:
         self.config = config
         self.out_dir = Path(out_dir)
@@ -221,6 +224,7 @@ class Session:
         self.progress = progress or Progress(enabled=False)
         self.stop_event = stop_event or threading.Event()
         self.state_rate = state_rate
+        self.on_station = on_station  # called with each station right after it connects (tests inject faults)
         self.summary = SessionSummary(self.out_dir)
         self._episode_index = 0
         self._recorder: Recorder | None = None
@@ -300,6 +304,8 @@ class Session:
             station.close()
             return
         try:
+            if self.on_station is not None:
+                self.on_station(station)
             for item in items:
                 if self._should_stop():
                     break
@@ -442,6 +448,7 @@ class Session:
         t1 = self.clock.now()
         station.arms["right"].start_motion(motion.right)
         self._start_skew = self.clock.now() - t0
+        self.summary.start_skew_s = max(self.summary.start_skew_s, self._start_skew)
         log.debug("arm start skew %.3f ms (left call %.3f ms)", self._start_skew * 1e3, (t1 - t0) * 1e3)
         return t0
 
