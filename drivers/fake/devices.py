@@ -355,6 +355,16 @@ class FakeArm:
             self._fault_at = None
             self._hold, self._motion = frozen, None
 
+    def guide_to(self, q: np.ndarray) -> None:
+        """Put the arm at joints ``q`` (7,) rad at once, as a hand guiding it would (teaching); refused mid-motion."""
+        with self._lock:
+            now = self.clock.now()
+            if self._motion is not None and now < self._t0 + self._motion.duration - 1e-9:
+                raise DeviceError(f"{self.name} arm: cannot be guided while a motion runs", recoverable=True)
+            q = np.asarray(q, dtype=np.float64).reshape(7).copy()
+            self._hold, self._motion = q, None
+            self._lag_q, self._lag_t = q.copy(), now
+
     # ------------------------------------------------------------ fault injection
     def inject_fault(self, at_time: float, recoverable: bool = True, message: str = "injected reflex") -> None:
         """From clock time ``at_time`` on, freeze the arm and make wait_motion/start_motion raise DeviceError."""
