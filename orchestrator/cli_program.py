@@ -1,7 +1,8 @@
 """``trackdeform program ...``: validate, time and preview waypoint programs.
 
 ``register(subparsers)`` adds the ``program`` command with the subcommands ``list``,
-``validate FILE``, ``time FILE --speed ...`` and ``preview FILE --speed ... --out plot.png``.
+``validate FILE``, ``time FILE --speed ...``, ``preview FILE --speed ... --out plot.png`` and
+``teach --config CONFIG --out FILE`` (record waypoints by hand-guiding the arms; see orchestrator.teach).
 FILE is a program file (YAML/JSON) or the name of a library program (e.g. ``rope_swing``).
 """
 
@@ -168,6 +169,20 @@ def cmd_preview(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_teach(args: argparse.Namespace) -> int:
+    """Teach a program on the config's station from stdin commands (see ``orchestrator.teach``)."""
+    from orchestrator.config import ConfigError, load_config
+    from orchestrator.teach import teach_station
+
+    try:
+        config = load_config(args.config)
+    except ConfigError as e:
+        print(e, file=sys.stderr)
+        return 2
+    return teach_station(config, sys.stdin, sys.stdout, out_path=args.out, name=args.name,
+                         category=args.category, grip_dwell=args.grip_dwell)
+
+
 def _speed_args(p: argparse.ArgumentParser, speed_required: bool) -> None:
     p.add_argument("file", help="program file (YAML/JSON) or library name, e.g. rope_swing")
     if speed_required:
@@ -177,7 +192,7 @@ def _speed_args(p: argparse.ArgumentParser, speed_required: bool) -> None:
 
 
 def register(subparsers: Any) -> None:  # noqa: ANN401 - argparse's private _SubParsersAction
-    """Add ``program {list,validate,time,preview}`` to the main CLI's ``subparsers``."""
+    """Add ``program {list,validate,time,preview,teach}`` to the main CLI's ``subparsers``."""
     prog = subparsers.add_parser("program", help="validate, time and preview waypoint programs")
     sub = prog.add_subparsers(dest="program_command", metavar="SUBCOMMAND")
     prog.set_defaults(func=lambda args: (prog.print_help(), 2)[1])
@@ -198,3 +213,21 @@ def register(subparsers: Any) -> None:  # noqa: ANN401 - argparse's private _Sub
     _speed_args(pv, speed_required=True)
     pv.add_argument("--out", required=True, help="image file, e.g. plot.png")
     pv.set_defaults(func=cmd_preview)
+
+    te = sub.add_parser(
+        "teach", help="record a program by hand-guiding the arms (Enter = waypoint, g l/g r, u, q)",
+        description="Connect the station's arms and grippers (never commanded) and read commands from stdin: "
+                    "Enter records a waypoint (both arms' joints and grippers), 'g l' / 'g r' toggles a gripper "
+                    "(recorded at the next waypoint), 'u' undoes the last waypoint, 'q' or end of input checks "
+                    "(limits, timing and collisions at slow) and saves (with a warning when problems are found), "
+                    "Ctrl-C quits without saving. Franka Pandas: activate FCI and guide each arm with the two "
+                    "guiding buttons at the flange (see orchestrator/teach.py).",
+    )
+    te.add_argument("--config", required=True, help="station config (YAML), e.g. configs/dual_panda_realsense.yaml")
+    te.add_argument("--out", required=True, help="program file to write (.yaml or .json)")
+    te.add_argument("--name", help="program name (default: the file name without extension)")
+    te.add_argument("--category", choices=("dlo", "bdlo", "cloth", "any"), default="any",
+                    help="object category the program is written for (default any)")
+    te.add_argument("--grip-dwell", type=float, default=1.0,
+                    help="seconds to hold still at a waypoint where a gripper changes (default 1.0)")
+    te.set_defaults(func=cmd_teach)
