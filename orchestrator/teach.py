@@ -13,7 +13,10 @@ grippers (never the camera), then reads commands, one per line:
   saved anyway, with a warning, so a long teaching session is never lost;
 - Ctrl-C: quit without saving.
 
-The arms are never commanded while teaching: the command only reads their joint states.
+The arms are never commanded while teaching: the command only reads their joint states. The
+grippers move only when toggled, except that a Franka Hand homes its fingers on connect when its
+config has ``home_on_connect: true`` (the default): start teaching with the hands empty, or set it
+to false.
 
 Hand guiding on the Franka Panda (``type: franka``, driver ``drivers.franka`` over franky): the
 FCI must be activated in Desk and the joints unlocked so that franky can connect. Guide an arm by
