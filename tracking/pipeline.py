@@ -10,8 +10,9 @@ goes back to ``waiting`` with the recent frames as references, so it re-initiali
 
 from __future__ import annotations
 
+import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -35,6 +36,10 @@ class PipelineOutput:
     keypoints: (N, 3) float64 m world (raw), smoothed: (N, 3) causal moving average; empty before init.
     grasp_idx: (G,) int64 keypoint held by each gripper (-1: none). abs_mm / cd_mm: the paper's per-frame
     edge-length RMSE and keypoint-to-cloud distance (nan before init). n_points: segmented cloud size.
+    timings_ms: wall time of this frame's stages, ms: "arm" (arm mask render), "segment"
+    (differencing or background segmentation + DBSCAN), "init" (classification, anchors, warm start,
+    solve) on an initialisation frame, "anchors" (re-detection) and "solve" (Algorithm 1 + scoring)
+    on a tracked frame, "total" (the whole ``process`` call).
     """
 
     status: str
@@ -47,6 +52,7 @@ class PipelineOutput:
     topology: Topology | None = None
     cloud: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)), repr=False)
     note: str = ""
+    timings_ms: dict[str, float] = field(default_factory=dict, repr=False)
 
 
 _EMPTY = np.zeros((0, 3))
@@ -87,6 +93,7 @@ class LivePipeline:
         self.background: np.ndarray | None = None
         self.init_failures = 0
         self.last_init_error = ""
+        self._timings: dict[str, float] = {}
 
     @property
     def state(self) -> str:
@@ -117,13 +124,18 @@ class LivePipeline:
     ) -> PipelineOutput:
         """One frame: depth (H, W) float32 m; both arms as one mesh (V, 3) m world + (F, 3) int;
         tcp (G, 3) m world and gripper_closed (G,) bool of the grippers (G = 2: left, right)."""
+        t0 = time.perf_counter()
         arm = self.arm_mask(depth, arm_vertices, arm_triangles)
+        self._timings = {"arm": 1e3 * (time.perf_counter() - t0)}
         if self._d0 is None:
             self._d0 = depth.copy()
-            return self._empty("reference")
-        if not self.tracker.initialised:
-            return self._try_initialise(depth, arm, tcp)
-        return self._track(depth, arm, tcp, gripper_closed)
+            out = self._empty("reference")
+        elif not self.tracker.initialised:
+            out = self._try_initialise(depth, arm, tcp)
+        else:
+            out = self._track(depth, arm, tcp, gripper_closed)
+        self._timings["total"] = 1e3 * (time.perf_counter() - t0)
+        return replace(out, timings_ms=self._timings)
 
     # ---------------------------------------------------------------- internals
     def _empty(self, status: str, n_points: int = 0, note: str = "") -> PipelineOutput:
@@ -142,7 +154,10 @@ class LivePipeline:
 
     def _try_initialise(self, depth: np.ndarray, arm: np.ndarray | None, tcp: np.ndarray | None) -> PipelineOutput:
         refs = self._references()
+        t0 = time.perf_counter()
         seg = segment_by_difference(refs, depth, self.K, self.T, self.params, arm)
+        t1 = time.perf_counter()
+        self._timings["segment"] = 1e3 * (t1 - t0)
         self._remember(depth)
         if len(seg.points) < self.min_init_points:
             return self._empty("waiting", len(seg.points), "waiting for the arms to move the object")
@@ -152,6 +167,8 @@ class LivePipeline:
             self.init_failures += 1
             self.last_init_error = str(e)
             return self._empty("waiting", len(seg.points), f"initialisation failed: {e}")
+        finally:
+            self._timings["init"] = 1e3 * (time.perf_counter() - t1)
         bg = background_from_depths(refs)
         self.background = update_background(bg, depth, self.params, arm)
         return self._output("init", res, seg.points)
@@ -160,11 +177,14 @@ class LivePipeline:
         self, depth: np.ndarray, arm: np.ndarray | None, tcp: np.ndarray | None, closed: np.ndarray | None
     ) -> PipelineOutput:
         assert self.background is not None
+        t0 = time.perf_counter()
         seg = segment_against_background(
             depth, self.background, self.K, self.T, self.params, arm, self.tracker.keypoints
         )
+        self._timings["segment"] = 1e3 * (time.perf_counter() - t0)
         topology = self.tracker.topology
         res = self.tracker.step(seg.points, tcp=tcp, gripper_closed=closed)
+        self._timings.update(self.tracker.last_timings_ms)
         self.background = update_background(self.background, depth, self.params, arm)
         self._remember(depth)
         if res.status == TrackStatus.LOST:

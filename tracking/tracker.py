@@ -5,6 +5,7 @@ The stages are pure functions; ``Tracker`` only holds the state between frames.
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from dataclasses import dataclass
 from enum import Enum
@@ -199,6 +200,7 @@ class Tracker:
         self.grasp_idx = np.zeros(0, np.int64)
         self._history: deque[np.ndarray] = deque(maxlen=max(1, params.causal_window))
         self._bad = 0
+        self.last_timings_ms: dict[str, float] = {}  # "anchors", "solve" of the last step, ms
 
     @property
     def initialised(self) -> bool:
@@ -250,12 +252,17 @@ class Tracker:
                 self.grasp_idx = np.full(len(tcp), -1, np.int64)
             self.grasp_idx = update_grasp_indices(self.grasp_idx, self.keypoints, tcp, gripper_closed, p.grasp_gate_m)
         na = len(self.topology.anchor_idx)
+        self.last_timings_ms = {}
         if len(cloud) < p.min_object_points:
             return self._result(self.keypoints, cloud, 0, na, force_bad=True)
+        t0 = time.perf_counter()
         det, kinds = detect_anchors(self.topology.kind, cloud, self.K, self.T, p)
+        t1 = time.perf_counter()
         pred = self.keypoints if self._velocity is None else self.keypoints + self._velocity
         X, matched = track_frame(self.keypoints, self.topology, cloud, det, kinds, p, tcp, self.grasp_idx, pred)
-        return self._result(X, cloud, matched, na)
+        res = self._result(X, cloud, matched, na)
+        self.last_timings_ms = {"anchors": 1e3 * (t1 - t0), "solve": 1e3 * (time.perf_counter() - t1)}
+        return res
 
     def _result(
         self, X: np.ndarray, cloud: np.ndarray, matched: int, total: int, force_bad: bool = False
