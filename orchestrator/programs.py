@@ -40,6 +40,7 @@ class PlannedMotion:
     left: JointMotion
     right: JointMotion
     gripper_events: tuple[GripperAction, ...]
+    waypoint_offset: int = 0  # the timed program starts at this waypoint of the original program
 
     @property
     def duration(self) -> float:
@@ -77,13 +78,24 @@ def _safety_problems(timed: TimedProgram, bases: dict[str, np.ndarray]) -> list[
     return [str(v) for v in report.violations]
 
 
-def plan_motion(item: Any, station: Any, fast_duration: float) -> PlannedMotion:
+def program_from(program: Program, k: int) -> Program:
+    """The program from waypoint ``k`` on, the gripper states in force at ``k`` made explicit there."""
+    if k <= 0:
+        return program
+    if k >= len(program.waypoints):
+        raise ValueError(f"{program.name} has {len(program.waypoints)} waypoints; cannot start at {k}")
+    first = program.waypoints[k].model_copy(update={"grippers": program.gripper_states()[k]})
+    return program.model_copy(update={"waypoints": [first, *program.waypoints[k + 1 :]]})
+
+
+def plan_motion(item: Any, station: Any, fast_duration: float, start_waypoint: int = 0) -> PlannedMotion:
     """Load ``item.program``, time it from the arms' current state at ``item.speed``, check it.
 
-    Raises ProgramRejected (before anything moves) with every problem found.
+    ``start_waypoint`` > 0 resumes after a fault: a slow approach from where the arms are to that
+    waypoint, then the rest at the item's speed. Raises ProgramRejected (before anything moves).
     """
     try:
-        program = load_program(resolve_program(item.program))
+        program = program_from(load_program(resolve_program(item.program)), start_waypoint)
     except ProgramError as e:
         raise ProgramRejected(str(e)) from None
     q = station.current_q()
@@ -97,7 +109,7 @@ def plan_motion(item: Any, station: Any, fast_duration: float) -> PlannedMotion:
         GripperAction(e.time, e.arm, e.command.state == "closed", e.command.width, e.command.force)
         for e in timed.gripper_events
     )
-    return PlannedMotion(timed, left, right, events)
+    return PlannedMotion(timed, left, right, events, start_waypoint)
 
 
 def check_config_programs(config: Config, out: TextIO) -> int:

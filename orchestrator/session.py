@@ -110,6 +110,7 @@ class Station:
         self.bases = {n: s.arm.base.matrix() for n, s in slots.items()}
         self.T_world_cam = st.camera.pose.matrix()
         self.fps = st.camera.fps
+        self.broken: str | None = None  # set after a fault that needs a person; no more runs here
         self._connected: list[Any] = []
 
     @staticmethod
@@ -166,6 +167,14 @@ class Station:
     def current_q(self) -> dict[str, np.ndarray]:
         """(7,) joint vector of each arm now."""
         return {n: self.arms[n].read_state().q for n in ARMS}
+
+
+@dataclass
+class _Resume:
+    """Where a program run continues after a recovered fault: a waypoint and the next chunk index."""
+
+    waypoint: int = 0
+    chunk: int = 0
 
 
 class _StatePoller:
@@ -309,36 +318,61 @@ class Session:
             for item in items:
                 if self._should_stop():
                     break
+                if station.broken:
+                    self.summary.runs_failed.append(
+                        f"{item.label}: skipped, the station needs attention ({station.broken})"
+                    )
+                    continue
                 self._run_item_with_retries(item, station)
         finally:
             station.close()
 
     def _run_item_with_retries(self, item: RunItem, station: Station, retries: int = 2) -> None:
+        """Run an item; after a recoverable fault, recover and retry the faulted segment at slow speed."""
+        resume = _Resume()
         for attempt in range(retries + 1):
             try:
-                self._run_item(item, station)
+                self._run_item(item, station, resume)
                 self.summary.runs_done += 1
                 return
             except DeviceError as e:
                 msg = f"{item.label}: device fault: {e}"
                 log.warning(msg)
                 self.progress.message(f"warning: {msg}")
+                self._stop_arms(station)
                 if not e.recoverable or attempt == retries:
                     self.summary.runs_failed.append(msg)
+                    if not e.recoverable:
+                        station.broken = str(e)
                     return
-                self._recover(station)
+                try:
+                    self._recover(station)
+                except DeviceError as e2:
+                    self.summary.runs_failed.append(f"{msg}; recovery failed: {e2}")
+                    station.broken = f"recovery failed: {e2}"
+                    return
                 self.summary.faults_recovered += 1
+                self.progress.message(
+                    f"recovered; retrying from waypoint {resume.waypoint} (approach at slow speed)"
+                )
             except ProgramRejected as e:
                 self.summary.runs_failed.append(f"{item.label}: {e}")
                 self.progress.message(f"error: {item.label}: {e}")
                 return
 
-    def _recover(self, station: Station) -> None:
+    @staticmethod
+    def _stop_arms(station: Station) -> None:
+        """Stop every arm, ignoring arms that cannot (a faulted arm is already stopped)."""
         for arm in station.arms.values():
             try:
                 arm.stop()
-            except DeviceError:
-                pass
+            except DeviceError as e:
+                log.warning("stop after a fault: %s", e)
+
+    @staticmethod
+    def _recover(station: Station) -> None:
+        """Clear recoverable faults on every arm; raises DeviceError when one cannot be cleared."""
+        for arm in station.arms.values():
             arm.recover()
 
     def _sample_states(self, station: Station) -> None:
@@ -364,19 +398,24 @@ class Session:
         except DeviceError as e:
             raise DeviceError(f"camera: no frame after {retries} attempts and a reconnect: {last}; {e}") from e
 
-    def _run_item(self, item: RunItem, station: Station) -> None:
+    def _run_item(self, item: RunItem, station: Station, resume: _Resume) -> None:
+        """Record one program run (from ``resume.waypoint`` after a fault) as whole episodes.
+
+        On a DeviceError, ``resume`` is updated with the waypoint to retry from and the next chunk index.
+        """
         assert self._recorder is not None
         plan = self.config.plan
-        motion = plan_motion(item, station, plan.fast_duration)
+        motion = plan_motion(item, station, plan.fast_duration, start_waypoint=resume.waypoint)
         fps = station.fps
         per_episode = max(1, round(plan.episode_seconds * fps))
-        settle_frames = round(plan.settle_seconds * fps)
+        settle_frames = round(plan.settle_seconds * fps) if resume.waypoint == 0 else 0
         total = math.ceil((settle_frames + motion.duration * fps) / per_episode) * per_episode
         events = list(motion.gripper_events)
         t_start: float | None = None
-        chunk = -1
+        chunk = resume.chunk - 1
         episode_frames = 0
         base_meta = self._base_metadata(item, station, motion)
+        base_meta["start_waypoint"] = resume.waypoint
         self._run_info = {
             "object": item.object.name, "category": item.object.category, "program": item.program,
             "speed": item.speed, "run_index": item.index, "n_keypoints": item.object.n_keypoints,
@@ -401,8 +440,6 @@ class Session:
                     while events and events[0].time <= self.clock.now() - t_start:
                         ev = events.pop(0)
                         station.grippers[ev.arm].command(ev.closed, ev.width, ev.force)
-                    for arm in station.arms.values():
-                        arm.wait_motion(0.0)  # raises DeviceError on a fault
                 if self.sim_time:  # joint states at state_rate up to the next frame time
                     t_next = self.clock.now() + 1.0 / fps
                     while next_state_t < t_next:
@@ -413,6 +450,9 @@ class Session:
                 self._record_frame(frame, station)
                 episode_frames += 1
                 self.summary.recorded_seconds += 1.0 / fps
+                if t_start is not None:  # a fault shows in the episode holding the frame it happened in
+                    for arm in station.arms.values():
+                        arm.wait_motion(0.0)  # raises DeviceError on a fault
                 self.progress.update(
                     f"[{item.index + 1}] {item.label} | episode {self._episode_index - 1} "
                     f"{episode_frames}/{per_episode} | recorded {self.summary.recorded_seconds:5.1f} s"
@@ -433,8 +473,11 @@ class Session:
                 for arm in station.arms.values():
                     arm.stop()
         except DeviceError:
-            if chunk >= 0 and episode_frames:
-                self._close_episode(station, False, fault=True)
+            self._close_episode(station, False, fault=True)
+            resume.chunk = chunk + 1
+            if t_start is not None:
+                seg = int(motion.timed.segment_at(np.array([self.clock.now() - t_start]))[0])
+                resume.waypoint = motion.waypoint_offset + motion.timed.segments[seg].to_waypoint
             raise
         finally:
             if poller:
@@ -480,7 +523,7 @@ class Session:
         assert self._recorder is not None
         if not getattr(self, "_episode_open", False):
             return
-        meta: dict[str, Any] = {"complete": complete, "fault": fault}
+        meta: dict[str, Any] = {"complete": complete, "fault": fault}  # every episode has both keys
         if station.sim is not None:
             meta.update(station.sim.episode_facts())
         self._recorder.close_episode(meta)
