@@ -49,6 +49,21 @@ def project_points(points: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -
     return np.stack([u, v], axis=1), z
 
 
+def decimation_stride(K: np.ndarray, pixel_m: float) -> int:
+    """Stride s >= 1 (px) so that every s-th pixel of a camera with matrix K (3, 3) spans about
+    ``pixel_m`` metres at 1 m depth (s = round(fx * pixel_m)); 1 when pixel_m <= 0."""
+    if pixel_m <= 0:
+        return 1
+    return max(1, int(round(0.5 * (K[0, 0] + K[1, 1]) * pixel_m)))
+
+
+def decimated_intrinsics(K: np.ndarray, s: int) -> np.ndarray:
+    """Camera matrix (3, 3) of the image ``img[::s, ::s]``: pixel (r, c) there is pixel (s r, s c) of K's image."""
+    Kd = K.astype(np.float64).copy()
+    Kd[:2, :] /= s
+    return Kd
+
+
 def scale_intrinsics(K: np.ndarray, s: float) -> np.ndarray:
     """Camera matrix (3, 3) of the same camera with the image resized by factor s (pixel centres kept)."""
     Ks = K.astype(np.float64).copy()
@@ -87,6 +102,14 @@ def splat_mask(
     k = np.ones((3, 3), np.uint8)
     mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, k)
     return mask.astype(bool)
+
+
+def edge_samples(X: np.ndarray, edges: np.ndarray, n: int) -> np.ndarray:
+    """Points (E * n, 3) m spaced evenly along each edge (E, 2) of keypoints X (N, 3) m, ends included."""
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    t = np.linspace(0.0, 1.0, max(2, n))[None, :, None]
+    a, b = X[edges[:, 0]][:, None, :], X[edges[:, 1]][:, None, :]
+    return (a + t * (b - a)).reshape(-1, 3)
 
 
 def farthest_point_sampling(points: np.ndarray, n: int, seeds: np.ndarray | None = None) -> np.ndarray:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from tracking.anchors import (
@@ -14,7 +15,7 @@ from tracking.anchors import (
     skeleton_3d,
 )
 from tracking.classify import ObjectClass, classify_object
-from tracking.geometry import farthest_point_sampling
+from tracking.geometry import farthest_point_sampling, project_points
 from tracking.params import TrackingParams
 from tracking.skeleton import LEAF
 from tracking.solver import edge_colouring, solve_keypoints
@@ -62,8 +63,14 @@ def _polyline_arc(poly: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poly, axis=0), axis=1))])
 
 
-def _dfs_branch_order(n_nodes: int, branches: list[tuple[int, int, np.ndarray]], root: int) -> list[tuple[int, bool]]:
-    """Branches in depth-first order from root: (branch id, reversed?) so each starts at a visited node."""
+def _dfs_branch_order(
+    n_nodes: int, branches: list[tuple[int, int, np.ndarray]], root: int, node_key: np.ndarray | None = None
+) -> list[tuple[int, bool]]:
+    """Branches in depth-first order from root: (branch id, reversed?) so each starts at a visited node.
+
+    node_key: (n_nodes,) float; at a node, its branches are taken in increasing key of their far
+    node (e.g. the image column), so the order follows the geometry, not the skeleton's pixel order.
+    """
     adj: list[list[int]] = [[] for _ in range(n_nodes)]
     for k, (a, b, _) in enumerate(branches):
         adj[a].append(k)
@@ -73,9 +80,15 @@ def _dfs_branch_order(n_nodes: int, branches: list[tuple[int, int, np.ndarray]],
     order: list[tuple[int, bool]] = []
     stack = [root]
     seen_node[root] = True
+
+    def far_key(k: int, u: int) -> tuple[float, int]:
+        a, b, _ = branches[k]
+        v = a if b == u else b
+        return (float(node_key[v]) if node_key is not None else 0.0, k)
+
     while stack:
         u = stack.pop()
-        for k in sorted(adj[u], reverse=True):
+        for k in sorted(adj[u], key=lambda k: far_key(k, u)):
             if seen_br[k]:
                 continue
             seen_br[k] = True
@@ -89,22 +102,82 @@ def _dfs_branch_order(n_nodes: int, branches: list[tuple[int, int, np.ndarray]],
     return order
 
 
+def root_leaf(
+    nodes: np.ndarray, kinds: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, hint: np.ndarray | None, gate_m: float
+) -> int:
+    """Node index (into nodes (K, 3) m) of keypoint 0 of a 1D object, chosen so repeated
+    initialisations number the keypoints the same way: the leaf nearest ``hint`` (3,) m (the first
+    gripper's TCP) when one lies within ``gate_m``, else the leftmost leaf in the image."""
+    leaves = np.nonzero(kinds == LEAF)[0]
+    if len(leaves) == 0:
+        return 0
+    if hint is not None:
+        d = np.linalg.norm(nodes[leaves] - np.asarray(hint, np.float64).reshape(3), axis=1)
+        if d.min() <= gate_m:
+            return int(leaves[np.argmin(d)])
+    uv, _ = project_points(nodes[leaves], K, T_world_cam)
+    return int(leaves[np.argmin(uv[:, 0])])
+
+
+def snap_held_leaves(
+    nodes: np.ndarray, kinds: np.ndarray, branches: list[tuple[int, int, np.ndarray]], held: np.ndarray, gate_m: float
+) -> tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]:
+    """Move each leaf held by a closed gripper to the gripper's TCP (the end is between the fingers).
+
+    nodes (K, 3) m, kinds (K,), branches (a, b, polyline (M, 3) m a -> b); held: (H, 3) m TCPs of
+    the closed grippers. The leaf nearest a TCP within ``gate_m`` becomes the TCP and its branch's
+    polyline is extended to it (the skeleton stops at the visible tip, short of the hidden end; the
+    rest lengths then span the whole object, as tracking pins held keypoints at the TCPs).
+    Returns the new (nodes, branches).
+    """
+    leaves = np.nonzero(kinds == LEAF)[0]
+    held = np.asarray(held, np.float64).reshape(-1, 3)
+    if len(leaves) == 0 or len(held) == 0:
+        return nodes, branches
+    C = np.linalg.norm(held[:, None, :] - nodes[leaves][None, :, :], axis=2)
+    r, c = linear_sum_assignment(C)
+    ok = C[r, c] <= gate_m
+    nodes = nodes.copy()
+    moved = dict(zip(leaves[c[ok]].tolist(), held[r[ok]], strict=True))
+    out = []
+    for a, b, poly in branches:
+        if a in moved:
+            poly = np.concatenate([moved[a][None], poly])
+        if b in moved:
+            poly = np.concatenate([poly, moved[b][None]])
+        out.append((a, b, poly))
+    for k, x in moved.items():
+        nodes[k] = x
+    return nodes, out
+
+
 def initialise_1d(
-    cloud: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, params: TrackingParams, obj: ObjectClass
+    cloud: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    params: TrackingParams,
+    obj: ObjectClass,
+    root_hint: np.ndarray | None = None,
+    held: np.ndarray | None = None,
 ) -> Initialisation:
     """Initialise a 1D object (rope, branched rope) from its segmented cloud (N, 3) float64 m world.
 
     Anchors = skeleton leaves and junctions; warm start = FPS on the cloud seeded from the anchors,
     each sample assigned to the nearest skeleton branch and ordered along it; edges chain each
-    branch node to node; rest length of a branch = its 3D arc length / its edge count.
+    branch node to node; rest length of a branch = its 3D arc length / its edge count. Keypoint 0
+    is the leaf at ``root_hint`` (3,) m or the image's leftmost (``root_leaf``); branches are
+    numbered depth-first, leftmost (image) first at junctions. held: (H, 3) m TCPs of closed
+    grippers: the ends they hold are placed there (``snap_held_leaves``).
     """
     sk = skeleton_3d(cloud, K, T_world_cam, params, all_components=False)
     if len(sk.branches) == 0:
         raise InitialisationError("no skeleton branch in the segmented cloud")
-    nodes, kinds = sk.nodes, sk.kinds
+    nodes, kinds, branches = sk.nodes, sk.kinds, sk.branches
+    if held is not None:
+        nodes, branches = snap_held_leaves(nodes, kinds, branches, held, params.grasp_gate_m)
     Nn = len(nodes)
     n_free = max(0, params.n_keypoints_1d - Nn)
-    polys = [p for _, _, p in sk.branches]
+    polys = [p for _, _, p in branches]
     lengths = np.array([_polyline_arc(p)[-1] for p in polys])
     # warm start: FPS from the anchors, assigned to branches by nearest skeleton sample
     fps = cloud[farthest_point_sampling(cloud, n_free, seeds=nodes)]
@@ -113,16 +186,16 @@ def initialise_1d(
     arc = np.concatenate([_polyline_arc(p) for p in polys])
     _, nn = cKDTree(samples).query(fps) if len(fps) else (None, np.zeros(0, np.int64))
     f_branch, f_arc = owner[nn], arc[nn]
-    leaves = np.nonzero(kinds == LEAF)[0]
-    root = int(leaves[np.argmin(nodes[leaves, 0])]) if len(leaves) else 0
+    root = root_leaf(nodes, kinds, K, T_world_cam, root_hint, 2.0 * params.grasp_gate_m)
+    node_u = project_points(nodes, K, T_world_cam)[0][:, 0]
     X: list[np.ndarray] = [nodes[root]]
     node_kp = np.full(Nn, -1)
     node_kp[root] = 0
     edges: list[tuple[int, int]] = []
     rest: list[float] = []
     chains: list[np.ndarray] = []
-    for k, rev in _dfs_branch_order(Nn, sk.branches, root):
-        a, b, _ = sk.branches[k]
+    for k, rev in _dfs_branch_order(Nn, branches, root, node_u):
+        a, b, _ = branches[k]
         start, end = (b, a) if rev else (a, b)
         sel = np.nonzero(f_branch == k)[0]
         sel = sel[np.argsort(f_arc[sel])]
@@ -184,10 +257,18 @@ def initialise_2d(
 
 
 def initialise(
-    cloud: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, params: TrackingParams, kind: str | None = None
+    cloud: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    params: TrackingParams,
+    kind: str | None = None,
+    root_hint: np.ndarray | None = None,
+    held: np.ndarray | None = None,
 ) -> Initialisation:
     """Classify (unless ``kind`` "1d"/"2d" is given) and initialise keypoints on a segmented cloud (N, 3) m.
 
+    root_hint: (3,) m, e.g. the first gripper's TCP: a 1D object's keypoint 0 is the end there.
+    held: (H, 3) m TCPs of the closed grippers: the object is held there (1D ends are put there).
     Raises InitialisationError when the cloud is too small or has no usable skeleton / contour.
     """
     if len(cloud) < params.min_object_points:
@@ -196,5 +277,5 @@ def initialise(
     if kind is not None:
         obj = ObjectClass(kind, obj.line_ratio, obj.plane_ratio)
     if obj.kind == "1d":
-        return initialise_1d(cloud, K, T_world_cam, params, obj)
+        return initialise_1d(cloud, K, T_world_cam, params, obj, root_hint, held)
     return initialise_2d(cloud, K, T_world_cam, params, obj)

@@ -18,6 +18,9 @@ class TrackingParams:
       arm_margin_m: a pixel is arm if its measured depth is farther than rendered arm depth minus this, m.
       arm_render_stride: rays are cast every this many pixels (then upsampled), px.
       lift_stride: foreground pixels are lifted every this many rows and columns, px.
+      decimate_pixel_m: LivePipeline first decimates each depth image by s = round(fx * this) (a
+        pixel then spans about this at 1 m, so any resolution gives the same cloud) and segments
+        the decimated image with lift_stride 1 (0: no decimation, lift_stride applies), m.
       voxel_m: voxel size of the down-sampled object cloud, m (3-5 mm).
       dbscan_eps_m, dbscan_min_points: DBSCAN neighbourhood radius (m) and core size.
       dbscan_voxel_m: DBSCAN runs on the cloud voxelised this coarsely (labels spread back), m.
@@ -25,6 +28,9 @@ class TrackingParams:
       cluster_keep_fraction, cluster_keep_gap_m: at initialisation also keep clusters at least this
         fraction of the largest and within this gap of it (an object split by a gripper), m.
       track_gate_m: in tracking, a cluster is kept if some point lies within this of the previous keypoints, m.
+      background_object_gap_m: a farther reading is absorbed into the background only if its 3D
+        point lies more than this from the tracked object (last cloud, keypoint edges): else it is
+        the object moving away from the camera, m.
     Classification
       classify_seeds, classify_radius_m, classify_k: number of random seeds, neighbourhood radius (m)
         and maximum neighbours per seed.
@@ -69,6 +75,7 @@ class TrackingParams:
     arm_margin_m: float = 0.02
     arm_render_stride: int = 2
     lift_stride: int = 2
+    decimate_pixel_m: float = 0.0045
     voxel_m: float = 0.004
     dbscan_eps_m: float = 0.015
     dbscan_min_points: int = 3
@@ -77,6 +84,7 @@ class TrackingParams:
     cluster_keep_fraction: float = 0.05
     cluster_keep_gap_m: float = 0.08
     track_gate_m: float = 0.05
+    background_object_gap_m: float = 0.015
 
     classify_seeds: int = 64
     classify_radius_m: float = 0.03

@@ -16,10 +16,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from tracking.geometry import decimated_intrinsics, decimation_stride, edge_samples
 from tracking.init import InitialisationError, Topology
 from tracking.params import TrackingParams
 from tracking.segmentation import (
     background_from_depths,
+    behind_near_object,
     render_arm_mask,
     segment_against_background,
     segment_by_difference,
@@ -59,7 +61,12 @@ _EMPTY = np.zeros((0, 3))
 
 
 class LivePipeline:
-    """Feed frames with :meth:`process`; K (3, 3) and T_world_cam (4, 4) are fixed for a sequence."""
+    """Feed frames with :meth:`process`; K (3, 3) and T_world_cam (4, 4) are fixed for a sequence.
+
+    Depth images are decimated by ``stride`` (``params.decimate_pixel_m``) before segmentation,
+    arm masking and background modelling, so the per-frame cost does not grow with the camera
+    resolution; anchors are detected with the full camera matrix.
+    """
 
     def __init__(
         self,
@@ -69,11 +76,20 @@ class LivePipeline:
         kind: str | None = None,
         min_init_points: int = 150,
         reference_gap: int = 10,
+        init_stable_frames: int = 5,
+        init_max_growth: float = 0.1,
+        init_grasp_patience: int = 90,
     ) -> None:
         """kind: "1d"/"2d" when the object's category is known (else classified from the cloud).
 
         min_init_points: a difference segmentation smaller than this (voxels) waits for more motion.
         reference_gap: frames between the extra difference references kept from the recent past.
+        init_stable_frames, init_max_growth: initialise only once the difference segmentation has
+          grown by at most this fraction over this many frames (it is still uncovering the object
+          while the arms start moving it; a partial cloud would give a partial topology).
+        init_grasp_patience: an initialisation must put a keypoint at every closed gripper's TCP
+          (within ``grasp_gate_m``: the object is held there); after this many such rejections a
+          cloud that fails the check is accepted anyway (e.g. a poorly calibrated TCP), frames.
         """
         self.params = params
         self.K = np.asarray(K, np.float64)
@@ -81,6 +97,16 @@ class LivePipeline:
         self.kind = kind
         self.min_init_points = min_init_points
         self.reference_gap = reference_gap
+        self.init_stable_frames = init_stable_frames
+        self.init_max_growth = init_max_growth
+        self.init_grasp_patience = init_grasp_patience
+        self.stride = decimation_stride(self.K, params.decimate_pixel_m)
+        s = self.stride
+        self.K_seg = decimated_intrinsics(self.K, s) if s > 1 else self.K
+        self.seg_params = params if s == 1 else replace(
+            params, lift_stride=1, arm_margin_px=-(-params.arm_margin_px // s),
+            arm_render_stride=max(1, int(round(params.arm_render_stride / s))),
+        )
         self.tracker = Tracker(params, self.K, self.T)
         self.reset()
 
@@ -90,7 +116,10 @@ class LivePipeline:
         self._d0: np.ndarray | None = None
         self._recent: deque[np.ndarray] = deque(maxlen=3)
         self._since_recent = 0
-        self.background: np.ndarray | None = None
+        self._sizes: deque[int] = deque(maxlen=self.init_stable_frames + 1)
+        self._grasp_rejections = 0
+        self._prev: np.ndarray | None = None
+        self.background: np.ndarray | None = None  # (h, w) float32 m, decimated
         self.init_failures = 0
         self.last_init_error = ""
         self._timings: dict[str, float] = {}
@@ -102,15 +131,22 @@ class LivePipeline:
             return "reference"
         return "tracking" if self.tracker.initialised else "waiting"
 
+    def decimate(self, depth: np.ndarray) -> np.ndarray:
+        """(H, W) depth, m -> (ceil(H / s), ceil(W / s)) float32 every ``stride``-th pixel (contiguous)."""
+        if self.stride == 1:
+            return np.array(depth, np.float32)  # a copy: references and background outlive the caller's buffer
+        return np.ascontiguousarray(depth[:: self.stride, :: self.stride], np.float32)
+
     def arm_mask(
         self, depth: np.ndarray, arm_vertices: np.ndarray | None, arm_triangles: np.ndarray | None
     ) -> np.ndarray | None:
-        """(H, W) bool pixels of the arms (rendered at their measured joints), or None without meshes."""
+        """Arm pixels (h, w) bool of a decimated depth (h, w) m (arms rendered at their measured
+        joints), or None without meshes."""
         if arm_vertices is None or arm_triangles is None or len(arm_triangles) == 0:
             return None
-        p = self.params
+        p = self.seg_params
         return render_arm_mask(
-            arm_vertices, arm_triangles, self.K, self.T, depth.shape, p.arm_margin_px, depth, p.arm_margin_m,
+            arm_vertices, arm_triangles, self.K_seg, self.T, depth.shape, p.arm_margin_px, depth, p.arm_margin_m,
             p.arm_render_stride,
         )
 
@@ -125,15 +161,17 @@ class LivePipeline:
         """One frame: depth (H, W) float32 m; both arms as one mesh (V, 3) m world + (F, 3) int;
         tcp (G, 3) m world and gripper_closed (G,) bool of the grippers (G = 2: left, right)."""
         t0 = time.perf_counter()
+        depth = self.decimate(depth)
         arm = self.arm_mask(depth, arm_vertices, arm_triangles)
         self._timings = {"arm": 1e3 * (time.perf_counter() - t0)}
         if self._d0 is None:
-            self._d0 = depth.copy()
+            self._d0 = depth
             out = self._empty("reference")
         elif not self.tracker.initialised:
-            out = self._try_initialise(depth, arm, tcp)
+            out = self._try_initialise(depth, arm, tcp, gripper_closed)
         else:
             out = self._track(depth, arm, tcp, gripper_closed)
+        self._prev = depth
         self._timings["total"] = 1e3 * (time.perf_counter() - t0)
         return replace(out, timings_ms=self._timings)
 
@@ -149,28 +187,47 @@ class LivePipeline:
     def _remember(self, depth: np.ndarray) -> None:
         self._since_recent += 1
         if self._since_recent >= self.reference_gap:
-            self._recent.append(depth.copy())
+            self._recent.append(depth)
             self._since_recent = 0
 
-    def _try_initialise(self, depth: np.ndarray, arm: np.ndarray | None, tcp: np.ndarray | None) -> PipelineOutput:
+    def _growing(self, n: int) -> bool:
+        """Whether the difference cloud (n voxels now) grew by more than ``init_max_growth`` lately."""
+        self._sizes.append(n)
+        if self.init_stable_frames <= 0:
+            return False
+        return len(self._sizes) < self._sizes.maxlen or n > (1.0 + self.init_max_growth) * self._sizes[0]
+
+    def _try_initialise(
+        self, depth: np.ndarray, arm: np.ndarray | None, tcp: np.ndarray | None, closed: np.ndarray | None
+    ) -> PipelineOutput:
         refs = self._references()
         t0 = time.perf_counter()
-        seg = segment_by_difference(refs, depth, self.K, self.T, self.params, arm)
+        seg = segment_by_difference(refs, depth, self.K_seg, self.T, self.seg_params, arm)
         t1 = time.perf_counter()
         self._timings["segment"] = 1e3 * (t1 - t0)
         self._remember(depth)
-        if len(seg.points) < self.min_init_points:
-            return self._empty("waiting", len(seg.points), "waiting for the arms to move the object")
+        n = len(seg.points)
+        if self._growing(n) or n < self.min_init_points:
+            return self._empty("waiting", n, "waiting for the arms to move the object")
         try:
-            ini, res = self.tracker.initialise(seg.points, tcp=tcp, kind=self.kind)
+            ini, res = self.tracker.initialise(seg.points, tcp=tcp, kind=self.kind, gripper_closed=closed)
         except InitialisationError as e:
             self.init_failures += 1
             self.last_init_error = str(e)
-            return self._empty("waiting", len(seg.points), f"initialisation failed: {e}")
+            return self._empty("waiting", n, f"initialisation failed: {e}")
         finally:
             self._timings["init"] = 1e3 * (time.perf_counter() - t1)
+        if tcp is not None and closed is not None:
+            held = np.asarray(closed, bool)
+            missing = held & (np.asarray(self.tracker.grasp_idx) < 0)
+            if missing.any() and self._grasp_rejections < self.init_grasp_patience:
+                self._grasp_rejections += 1
+                self.tracker.reset()
+                return self._empty("waiting", n, "waiting: the segmented object does not reach every closed gripper")
         bg = background_from_depths(refs)
-        self.background = update_background(bg, depth, self.params, arm)
+        self.background = update_background(bg, depth, self.seg_params, arm)
+        self._sizes.clear()
+        self._grasp_rejections = 0
         return self._output("init", res, seg.points)
 
     def _track(
@@ -178,19 +235,25 @@ class LivePipeline:
     ) -> PipelineOutput:
         assert self.background is not None
         t0 = time.perf_counter()
+        topo, X = self.tracker.topology, self.tracker.keypoints
+        assert topo is not None and X is not None
+        behind = behind_near_object(
+            depth, self.background, self.seg_params, edge_samples(X, topo.edges, 6), self.K_seg, self.T, arm
+        )
         seg = segment_against_background(
-            depth, self.background, self.K, self.T, self.params, arm, self.tracker.keypoints
+            depth, self.background, self.K_seg, self.T, self.seg_params, arm, X, behind
         )
         self._timings["segment"] = 1e3 * (time.perf_counter() - t0)
         topology = self.tracker.topology
         res = self.tracker.step(seg.points, tcp=tcp, gripper_closed=closed)
         self._timings.update(self.tracker.last_timings_ms)
-        self.background = update_background(self.background, depth, self.params, arm)
+        self.background = update_background(self.background, depth, self.seg_params, arm, self._prev, behind)
         self._remember(depth)
         if res.status == TrackStatus.LOST:
             # back to waiting: the recent frames (object elsewhere) become the references
-            self._d0 = self._recent[0] if self._recent else depth.copy()
+            self._d0 = self._recent[0] if self._recent else depth
             self._recent.clear()
+            self._sizes.clear()
             out = self._output("lost", res, seg.points)
             return PipelineOutput(**{**out.__dict__, "topology": topology})
         return self._output("tracking" if res.status == TrackStatus.OK else "degraded", res, seg.points)

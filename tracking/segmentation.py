@@ -270,19 +270,60 @@ def background_from_depths(depths: np.ndarray) -> np.ndarray:
     return np.nan_to_num(med, nan=0.0).astype(np.float32)
 
 
+def behind_near_object(
+    depth: np.ndarray,
+    background: np.ndarray,
+    params: TrackingParams,
+    object_points: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    arm_mask: np.ndarray | None = None,
+) -> np.ndarray:
+    """(H, W) bool: valid pixels significantly behind the background (m) whose 3D point lies within
+    ``background_object_gap_m`` of the tracked object (points (M, 3) m world, e.g. its densified
+    keypoint edges): the object moved away from the camera behind a background that still holds
+    it from the reference frames. Such pixels are object, not revealed background."""
+    out = valid_depth(depth, params) & (background > 0)
+    out &= depth - background > change_threshold(background, params)
+    if arm_mask is not None:
+        out &= ~arm_mask
+    if len(object_points) == 0 or not out.any():
+        return out & False
+    pts, rc = depth_to_points(depth, K, T_world_cam, out)
+    d = cKDTree(object_points).query(pts, distance_upper_bound=params.background_object_gap_m)[0]
+    out[:] = False
+    near = np.isfinite(d)
+    out[rc[near, 0], rc[near, 1]] = True
+    return out
+
+
 def update_background(
-    background: np.ndarray, depth: np.ndarray, params: TrackingParams, arm_mask: np.ndarray | None = None
+    background: np.ndarray,
+    depth: np.ndarray,
+    params: TrackingParams,
+    arm_mask: np.ndarray | None = None,
+    prev_depth: np.ndarray | None = None,
+    keep: np.ndarray | None = None,
 ) -> np.ndarray:
     """Background (H, W) float32 m updated with newly revealed farther surfaces of depth (H, W) m.
 
     Where the measured depth is significantly behind the background, whatever stood there (the
     object in the reference frames) has moved away: the farther surface becomes the background.
+    With ``prev_depth`` (H, W) m, the previous frame, a pixel must be behind in both frames: a
+    single noisy or flying reading then cannot push the background back (one-frame outliers would
+    otherwise ratchet it farther frame after frame and the foreground would fill with noise).
+    keep: (H, W) bool pixels not to update (``behind_near_object``: the object, not background).
     """
     ok = valid_depth(depth, params)
     if arm_mask is not None:
         ok &= ~arm_mask
+    if keep is not None:
+        ok &= ~keep
     bg_ok = background > 0
-    revealed = ok & bg_ok & (depth - background > change_threshold(background, params))
+    thr = change_threshold(background, params)
+    revealed = ok & bg_ok & (depth - background > thr)
+    if prev_depth is not None:
+        revealed &= prev_depth - background > thr
     out = background.copy()
     out[revealed] = depth[revealed]
     return out
@@ -307,11 +348,15 @@ def segment_against_background(
     params: TrackingParams,
     arm_mask: np.ndarray | None = None,
     prev_keypoints: np.ndarray | None = None,
+    extra: np.ndarray | None = None,
 ) -> Segmentation:
     """Per-frame segmentation: pixels in front of the background minus arms, clustered.
 
     depth, background: (H, W) float metres. prev_keypoints: (N, 3) m; when given, clusters near
     them are kept (all of them: an object split by a gripper stays whole), else the largest.
+    extra: (H, W) bool pixels known to be object as well (``behind_near_object``).
     """
     fg = foreground_mask(depth, background, params, arm_mask)
+    if extra is not None:
+        fg |= extra
     return _cluster(depth, fg, K, T_world_cam, params, prev_keypoints)

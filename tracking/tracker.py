@@ -217,14 +217,23 @@ class Tracker:
         self._bad = 0
 
     def initialise(
-        self, cloud: np.ndarray, tcp: np.ndarray | None = None, kind: str | None = None
+        self,
+        cloud: np.ndarray,
+        tcp: np.ndarray | None = None,
+        kind: str | None = None,
+        gripper_closed: np.ndarray | None = None,
     ) -> tuple[Initialisation, FrameResult]:
-        """Initialise on a segmented cloud (M, 3) m; tcp (G, 3) m of the grippers gives grasp indices.
+        """Initialise on a segmented cloud (M, 3) m; tcp (G, 3) m of the grippers gives grasp indices
+        (and keypoint 0 at the first gripper's end); with gripper_closed (G,) bool the ends held by
+        closed grippers are placed at their TCPs.
 
         Raises tracking.init.InitialisationError when the cloud cannot be initialised.
         """
         self.reset()
-        ini = initialise(cloud, self.K, self.T, self.params, kind)
+        tcps = None if tcp is None else np.asarray(tcp, np.float64).reshape(-1, 3)
+        hint = None if tcps is None or len(tcps) == 0 else tcps[0]
+        held = None if tcps is None or gripper_closed is None else tcps[np.asarray(gripper_closed, bool)]
+        ini = initialise(cloud, self.K, self.T, self.params, kind, root_hint=hint, held=held)
         self.topology = ini.topology
         self.keypoints = ini.keypoints
         if tcp is not None:
