@@ -177,10 +177,36 @@ class RenderOutput:
 
 
 class SceneRenderer:
-    """Renders the station from one camera: static scene built once, arms and object given per frame.
+    """Renders the station from one fixed camera: static scene pre-rendered once, arms and object per frame.
 
     intrinsics: the camera's pinhole model; T_world_cam: (4, 4) world <- optical frame.
+
+    The camera and the static scene (table, floor, wall, clutter) never move, so the constructor
+    ray-casts every pixel against them once (open3d) and keeps the exact depth, the view angle,
+    the shaded colour and ``static_frames`` noisy realisations of the colour and depth images
+    (the full error model below, independent draws each). A frame then only renders the dynamic
+    geometry (both arms and the object, a few thousand triangles): a vectorised scan-line
+    rasteriser z-buffers it against the static depth (exactly what casting each pixel's ray gives:
+    pixel centres at integer coordinates, two-sided triangles, ray-plane depth), or, when a
+    vertex is behind the camera, open3d casts the rays of the 4x4-pixel tiles its triangles'
+    projected bounding boxes touch. Shading and the error model are re-run only on the pixels
+    where the dynamic geometry shows plus their 4-neighbours (whose depth edges may have
+    changed); every other pixel comes from one static realisation, picked by the frame's seed.
+
+    Colour: per-triangle albedo (table with a wood-like grain), ambient + two-sided Lambert from a
+    fixed light + headlight, N(0, 2) sensor noise per channel. Depth error model (per pixel; a
+    4-neighbourhood depth jump > max(1.5 cm, 3 % z) makes a depth edge): edge pixels are lost
+    with probability ``edge_dropout``, pixels seen at a grazing angle (|cos| < 0.1) with
+    probability 0.8, a surviving edge pixel "flies" (takes a depth uniformly between its
+    neighbours' min and max) with a fixed per-edge-pixel probability set so that a
+    ``flying_pixels`` fraction of the static image flies; then Gaussian noise with std
+    ``depth_noise`` * z^2 (m, z in m), the 0.15-6 m range and 1 mm quantisation. Per-frame noise
+    comes from pools read at a seeded random offset.
+
+    nthreads: open3d ray-casting threads (fallback path). rasterise: False forces ray casting.
     """
+
+    tile = 4  # px; side of the square tiles the ray-casting fallback is restricted to
 
     def __init__(
         self,
@@ -193,6 +219,9 @@ class SceneRenderer:
         clutter: int = 6,
         seed: int = 0,
         object_color: Sequence[int] = (205, 70, 40),
+        static_frames: int = 8,
+        nthreads: int = 1,
+        rasterise: bool = True,
     ) -> None:
         self.intrinsics = intrinsics
         self.T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
@@ -201,34 +230,266 @@ class SceneRenderer:
         self.flying_pixels = float(flying_pixels)
         self.seed = int(seed)
         self.object_color = np.asarray(object_color, dtype=np.float32)
+        self.nthreads = int(nthreads)
+        self.rasterise = bool(rasterise)
+        K = intrinsics
+        H, W = K.height, K.width
+        n_pix = H * W
+        R, t = self.T_world_cam[:3, :3], self.T_world_cam[:3, 3]
+        light = np.array([0.35, 0.25, 1.0])
+        self._light_cam = (R.T @ (light / np.linalg.norm(light))).astype(np.float64)  # camera frame
+        # Padded pixel layout: (H + 2, W + 2) with a one-pixel ring, so 4-neighbours need no clamping.
+        self._Wp = W + 2
+        interior = (np.arange(H)[:, None] + 1) * self._Wp + np.arange(W)[None, :] + 1
+        self._interior = interior.reshape(-1)  # (H*W,) padded index of every pixel
+        u, vv = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+        d_cam = np.stack([(u - K.cx) / K.fx, (vv - K.cy) / K.fy, np.ones_like(u)], axis=-1).reshape(-1, 3)  # z = 1
+        self._ray_norm = self._padded(np.linalg.norm(d_cam, axis=1), 1.0).astype(np.float32)  # (P,) |d|
+
+        # Tiles of the ray-casting fallback: (n_tiles, T*T) flat pixel indices, clamped at the border.
+        T_ = self.tile
+        self._n_tiles_y, self._n_tiles_x = -(-H // T_), -(-W // T_)
+        ty, tx = np.meshgrid(np.arange(self._n_tiles_y), np.arange(self._n_tiles_x), indexing="ij")
+        oy, ox = np.meshgrid(np.arange(T_), np.arange(T_), indexing="ij")
+        py = np.minimum(ty.reshape(-1, 1) * T_ + oy.reshape(1, -1), H - 1)
+        px = np.minimum(tx.reshape(-1, 1) * T_ + ox.reshape(1, -1), W - 1)
+        self._tile_pixels = py * W + px  # (n_tiles, T*T) int64
+
+        # ---- static pre-render: exact depth, view angle, shaded colour.
         meshes, colours = static_scene(clutter, seed)
         v, f, src = merge_meshes(meshes)
-        self._static = _tensors(v, f)
-        self._static_colour = np.asarray(colours, dtype=np.float32)[src]  # (F, 3) per triangle
-        K = intrinsics
-        u, vv = np.meshgrid(np.arange(K.width, dtype=np.float64), np.arange(K.height, dtype=np.float64))
-        d_cam = np.stack([(u - K.cx) / K.fx, (vv - K.cy) / K.fy, np.ones_like(u)], axis=-1)  # z = 1
-        R, t = self.T_world_cam[:3, :3], self.T_world_cam[:3, 3]
-        d_world = d_cam @ R.T
-        self._dir = d_world.reshape(-1, 3).astype(np.float32)
-        self._unit = (d_world / np.linalg.norm(d_world, axis=-1, keepdims=True)).reshape(-1, 3).astype(np.float32)
-        rays = np.concatenate([np.broadcast_to(t, self._dir.shape).astype(np.float32), self._dir], axis=1)
-        self._rays = o3d.core.Tensor(np.ascontiguousarray(rays))
-        self._origin = t.astype(np.float32)
-        self._light = np.array([0.35, 0.25, 1.0], dtype=np.float32)
-        self._light /= np.linalg.norm(self._light)
-        # Table texture per pixel, precomputed (camera and table are static): where each ray meets z = 0.
-        self._n_table_triangles = 12
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(*_tensors(v, f))
+        hit = scene.cast_rays(o3d.core.Tensor(self._rays(np.arange(n_pix))), nthreads=0)
+        valid = hit["geometry_ids"].numpy() != INVALID_ID
+        z = np.where(valid, hit["t_hit"].numpy(), 0.0).astype(np.float32)  # unit camera-z rays: t is z
+        normal = hit["primitive_normals"].numpy().astype(np.float64) @ R  # camera frame
+        prim = np.where(valid, hit["primitive_ids"].numpy().astype(np.int64), 0)
+        cos_view = np.abs(np.einsum("ij,ij->i", normal, d_cam)) / self._ray_norm[self._interior]
+        self._z_static = z  # (H*W,) float32 m, 0 = no hit
+        self._zp_static = self._padded(z, 0.0)
+        self._fill_ring(self._zp_static)
+        self._inv_static = self._padded(np.where(valid, 1.0 / np.where(valid, z, 1.0).astype(np.float64), 0.0), 0.0)
+        self._cos_static = self._padded(cos_view, 1.0).astype(np.float32)
+        n_table_triangles = 12  # the first box of static_scene
         with np.errstate(divide="ignore", invalid="ignore"):
-            s_plane = -t[2] / d_world[..., 2]
-        p = t + d_world * s_plane[..., None]
-        grain = 0.92 + 0.08 * np.sin(55.0 * p[..., 0] + 4.0 * np.sin(9.0 * p[..., 1])) * np.cos(3.0 * p[..., 1])
-        self._table_grain = np.nan_to_num(grain, nan=1.0).reshape(-1).astype(np.float32)
-        # Pools of sensor noise, shifted randomly per frame: drawing fresh normals costs ~15 ms a frame.
-        pool_rng = np.random.default_rng([self.seed, 2**31 - 1])
-        self._colour_noise = pool_rng.normal(0.0, 2.0, (3, K.height, K.width, 3)).astype(np.float32)
-        self._depth_noise = pool_rng.standard_normal((3, K.height, K.width)).astype(np.float32)
+            s_plane = -t[2] / (d_cam @ R.T)[:, 2]
+        p = t + (d_cam @ R.T) * s_plane[:, None]
+        grain = 0.92 + 0.08 * np.sin(55.0 * p[:, 0] + 4.0 * np.sin(9.0 * p[:, 1])) * np.cos(3.0 * p[:, 1])
+        grain = np.where(valid & (prim < n_table_triangles), np.nan_to_num(grain, nan=1.0), 1.0)
+        albedo = np.asarray(colours, dtype=np.float64)[src][prim] * valid[:, None]
+        shade = 0.35 + 0.45 * np.abs(normal @ self._light_cam) + 0.25 * cos_view
+        static_colour = (albedo * (shade * grain)[:, None]).astype(np.float32)  # (H*W, 3), noise-free
 
+        # ---- noise pools (P + shift rows), read from a seeded random row offset < shift per frame.
+        n_rows = len(self._ray_norm)
+        self._pool_shift = n_rows // 4 + 1
+        pool_rng = np.random.default_rng([self.seed, 2**31 - 1])
+        self._colour_pool = pool_rng.normal(0.0, 2.0, (n_rows + self._pool_shift, 3)).astype(np.float32)
+        self._depth_pool = np.concatenate(  # columns: N(0, 1), then 4 x U[0, 1)
+            [
+                pool_rng.standard_normal((n_rows + self._pool_shift, 1), dtype=np.float32),
+                pool_rng.random((n_rows + self._pool_shift, 4), dtype=np.float32),
+            ],
+            axis=1,
+        )
+        self._p_fly = 0.0
+        edge_static = self._depth_edges(self._zp_static, self._interior)[0]
+        self._p_fly = min(1.0, self.flying_pixels * n_pix / max(int(edge_static.sum()), 1))
+
+        # ---- static realisations: the full error model on every pixel, independent draws each.
+        frames_c, frames_d = [], []
+        for k in range(max(1, int(static_frames))):
+            rng = np.random.default_rng([self.seed, 2**31 - 2, k])
+            draws = np.concatenate([rng.standard_normal((n_pix, 1)), rng.random((n_pix, 4))], axis=1)
+            depth = self._depth_model(self._zp_static, self._cos_static, self._interior, draws.astype(np.float32))
+            noise = rng.normal(0.0, 2.0, (n_pix, 3)).astype(np.float32)
+            frames_c.append(np.clip(static_colour + noise, 0, 255).astype(np.uint8).reshape(H, W, 3))
+            frames_d.append(depth.reshape(H, W))
+        self._static_color = np.stack(frames_c)  # (K, H, W, 3) uint8
+        self._static_depth = np.stack(frames_d)  # (K, H, W) uint16 mm
+
+    # ------------------------------------------------------------ pixel layout
+    def _padded(self, image: np.ndarray, fill: float) -> np.ndarray:
+        """(P,) copy of a flat (H*W,) image in the padded layout, the ring set to ``fill``."""
+        out = np.full(len(self._interior) + 2 * (self.intrinsics.width + self.intrinsics.height) + 4, fill,
+                      dtype=np.result_type(image, np.float32))
+        out[self._interior] = image
+        return out
+
+    def _fill_ring(self, padded: np.ndarray) -> None:
+        """Copy the border pixels of a flat padded image into its ring (edge padding), in place."""
+        img = padded.reshape(self.intrinsics.height + 2, self._Wp)
+        img[0, 1:-1], img[-1, 1:-1] = img[1, 1:-1], img[-2, 1:-1]
+        img[:, 0], img[:, -1] = img[:, 1], img[:, -2]
+
+    def _unpad(self, pidx: np.ndarray) -> np.ndarray:
+        """Flat (H*W) pixel indices of padded indices ``pidx`` (interior pixels only)."""
+        return pidx - 2 * (pidx // self._Wp) - self.intrinsics.width - 1
+
+    def _rays(self, pix: np.ndarray) -> np.ndarray:
+        """(n, 6) float32 open3d rays [origin, direction with unit camera z] of flat pixel indices ``pix``."""
+        K = self.intrinsics
+        y, x = np.divmod(pix, K.width)
+        d_cam = np.stack([(x - K.cx) / K.fx, (y - K.cy) / K.fy, np.ones(len(pix))], axis=1)
+        origin = np.broadcast_to(self.T_world_cam[:3, 3], (len(pix), 3))
+        return np.concatenate([origin, d_cam @ self.T_world_cam[:3, :3].T], axis=1).astype(np.float32)
+
+    # ------------------------------------------------------------ per-pixel models
+    def _depth_edges(self, zp: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Depth-edge flags (n,) bool and the 4-neighbourhood min / max depth (n,) m of pixels ``idx``.
+
+        zp: (P,) float32 true depth in the padded layout (ring: edge padding), m, 0 = no hit;
+        idx: (n,) padded indices. An edge pixel sees a neighbour more than max(1.5 cm, 3 % of its
+        depth) nearer or farther.
+        """
+        Wp = self._Wp
+        zc = np.take(zp, idx)
+        a, b, c, d = (np.take(zp, idx + o) for o in (-Wp, Wp, -1, 1))
+        z_min = np.minimum(np.minimum(a, b), np.minimum(c, d))
+        z_max = np.maximum(np.maximum(a, b), np.maximum(c, d))
+        jump = np.maximum(z_max - zc, zc - z_min)
+        edge = (jump > np.maximum(np.float32(0.015), np.float32(0.03) * zc)) & (zc > 0)
+        return edge, z_min, z_max
+
+    def _depth_model(self, zp: np.ndarray, cos_view: np.ndarray, idx: np.ndarray, draws: np.ndarray) -> np.ndarray:
+        """Sensor depth (n,) uint16 mm (0 = lost) of the pixels ``idx`` (n,) (padded indices).
+
+        zp: (P,) float32 true z, m (0 = no hit), padded layout with edge-padded ring; cos_view:
+        (P,) |cos| between ray and surface normal; draws: (n, 5) per pixel, a standard normal
+        then 4 uniform [0, 1) (edge loss, grazing loss, fly, fly depth).
+        """
+        zc = np.take(zp, idx)
+        edge, z_min, z_max = self._depth_edges(zp, idx)
+        grazing = (np.take(cos_view, idx) < 0.1) & (zc > 0)
+        lost = (edge & (draws[:, 1] < self.edge_dropout)) | (grazing & (draws[:, 2] < 0.8))
+        fly = edge & ~lost & (draws[:, 3] < self._p_fly)
+        lo = np.where(z_min > 0, z_min, zc)
+        hi = np.where(z_max > 0, z_max, zc)
+        zn = np.where(fly, lo + draws[:, 4] * (hi - lo), zc)
+        zn += draws[:, 0] * (np.float32(self.depth_noise) * zn * zn)
+        lost |= (zn < MIN_RANGE) | (zn > MAX_RANGE) | (zc <= 0)
+        return np.where(lost, 0, np.rint(zn * np.float32(1.0 / DEPTH_SCALE))).astype(np.uint16)
+
+    # ------------------------------------------------------------ dynamic geometry
+    def _rasterise(
+        self, pc: np.ndarray, triangles: np.ndarray, n: np.ndarray, na: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Nearest-wins rasterisation of triangles against the static depth (all vertices in front of the camera).
+
+        pc: (V, 3) camera-frame vertices, m, z > 0; triangles: (F, 3); n: (F, 3) their normals
+        (camera frame, unnormalised) and na: (F,) n . (first vertex). Exactly what casting every
+        pixel's ray gives (pixel centres at integer coordinates, two-sided triangles): each
+        triangle is cut into image rows, each row into the pixel centres inside it, and the
+        inverse depth (affine in the pixel coordinates over a plane) is z-buffered with
+        ``np.maximum.at``. Returns, where the triangles are nearer than the static scene: padded
+        pixel indices (m,) int64, inverse depth (m,) float64 1/m and the triangle seen (m,) int64.
+        """
+        K = self.intrinsics
+        H, W, Wp = K.height, K.width, self._Wp
+        inv_z = 1.0 / pc[:, 2]
+        u = pc[:, 0] * inv_z * K.fx + K.cx
+        v = pc[:, 1] * inv_z * K.fy + K.cy
+        # Planes through the camera centre (seen edge-on) project to lines: no pixel centre to hit.
+        a = pc[triangles[:, 0]]
+        ok = na * na > 1e-14 * np.einsum("ij,ij->i", n, n) * np.einsum("ij,ij->i", a, a)
+        na = np.where(ok, na, 1.0)
+        # 1/z along the ray of pixel (x, y) through the plane n . p = n . a: alpha x + beta y + gamma.
+        alpha, beta = n[:, 0] / (K.fx * na), n[:, 1] / (K.fy * na)
+        gamma = n[:, 2] / na - alpha * K.cx - beta * K.cy
+        # Each triangle's vertices sorted by image row: top (0), middle (1), bottom (2).
+        us, vs = [u[triangles[:, j]] for j in range(3)], [v[triangles[:, j]] for j in range(3)]
+        for p, q in ((0, 1), (1, 2), (0, 1)):  # a 3-element sorting network
+            swap = vs[p] > vs[q]
+            us[p], us[q] = np.where(swap, us[q], us[p]), np.where(swap, us[p], us[q])
+            vs[p], vs[q] = np.where(swap, vs[q], vs[p]), np.where(swap, vs[p], vs[q])
+        u0, u1, u2 = us
+        v0, v1, v2 = vs
+
+        def line(ua: np.ndarray, va: np.ndarray, ub: np.ndarray, vb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            """x = offset + y * slope of the edge a -> b (va <= vb; a flat edge: slope 0)."""
+            dv = vb - va
+            slope = np.where(dv > 0, (ub - ua) / np.where(dv > 0, dv, 1.0), 0.0)
+            return ua - va * slope, slope
+
+        o_long, s_long = line(u0, v0, u2, v2)  # the long edge spans every row of the triangle
+        o_top, s_top = line(u0, v0, u1, v1)  # the short edges: above / below the middle vertex
+        o_bot, s_bot = line(u1, v1, u2, v2)
+        y_first = np.maximum(np.ceil(v0), 0.0)
+        y_last = np.minimum(np.floor(v2), H - 1.0)
+        on_image = ok & (np.maximum(np.maximum(u0, u1), u2) >= 0) & (np.minimum(np.minimum(u0, u1), u2) <= W - 1)
+        n_rows = np.where(on_image, np.maximum(y_last - y_first + 1.0, 0.0), 0.0).astype(np.int64)
+        # Rows: one entry per (triangle, image row it spans).
+        tri = np.repeat(np.arange(len(triangles)), n_rows)
+        y = np.take(y_first, tri) + (np.arange(len(tri)) - np.take(np.cumsum(n_rows) - n_rows, tri))
+        xa = np.take(o_long, tri) + y * np.take(s_long, tri)
+        short = tri + len(triangles) * (y >= np.take(v1, tri))  # the top edge's entry, or the bottom edge's
+        xb = np.take(np.concatenate([o_top, o_bot]), short) + y * np.take(np.concatenate([s_top, s_bot]), short)
+        x_first = np.maximum(np.ceil(np.minimum(xa, xb)), 0.0)
+        x_last = np.minimum(np.floor(np.maximum(xa, xb)), W - 1.0)
+        n_px = np.maximum(x_last - x_first + 1.0, 0.0).astype(np.int64)
+        # Fragments: one entry per (triangle, pixel centre inside it).
+        row = np.repeat(np.arange(len(tri)), n_px)
+        k = np.arange(len(row)) - np.take(np.cumsum(n_px) - n_px, row)
+        alpha_row = np.take(alpha, tri)
+        inv = np.take(alpha_row * x_first + np.take(beta, tri) * y + np.take(gamma, tri), row)
+        inv += np.take(alpha_row, row) * k
+        pix = np.take(((y + 1.0) * Wp + x_first + 1.0).astype(np.int64), row) + k
+        buf = self._inv_static.copy()  # (P,) float64 1/m, 0 where the static scene is missed
+        np.maximum.at(buf, pix, inv)
+        win = np.flatnonzero(inv == np.take(buf, pix))
+        win = win[np.take(inv, win) > np.take(self._inv_static, np.take(pix, win))]  # strictly nearer than static
+        return np.take(pix, win), np.take(inv, win), np.take(tri, np.take(row, win))
+
+    def _cast(self, vertices: np.ndarray, triangles: np.ndarray, pc: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Like :meth:`_rasterise` by open3d ray casting, restricted to the tiles the triangles can cover.
+
+        For any pose (also vertices behind the camera, where projecting breaks down).
+        vertices: (V, 3) world, m; triangles: (F, 3); pc: their camera-frame coordinates.
+        """
+        tiles = self._tiles_covering(pc, triangles)
+        if len(tiles) == 0:
+            return np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64)
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(*_tensors(vertices, triangles))
+        pix = np.unique(self._tile_pixels[tiles])  # border tiles repeat clamped pixels
+        hit = scene.cast_rays(o3d.core.Tensor(self._rays(pix)), nthreads=self.nthreads)
+        t_hit = hit["t_hit"].numpy().astype(np.float64)
+        pidx = self._interior[pix]
+        win = np.isfinite(t_hit) & (1.0 / t_hit > self._inv_static[pidx])  # nearer than the static scene
+        return pidx[win], 1.0 / t_hit[win], hit["primitive_ids"].numpy()[win].astype(np.int64)
+
+    def _tiles_covering(self, pc: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+        """(k,) ids of the tiles a ray through which may hit the triangles: their projected bounding boxes.
+
+        pc: (V, 3) camera-frame vertices, m; triangles: (F, 3). Conservative: the bounding box of a
+        triangle in front of the camera contains every pixel centre its projection covers
+        (plus 0.5 px of slack for rounding). A vertex behind the camera: every tile.
+        """
+        K = self.intrinsics
+        ny, nx, T_ = self._n_tiles_y, self._n_tiles_x, self.tile
+        if not len(triangles):
+            return np.zeros(0, dtype=np.int64)
+        if (pc[:, 2] < 1e-3).any():
+            return np.arange(ny * nx)
+        uv = pc[:, :2] / pc[:, 2:3] * [K.fx, K.fy] + [K.cx, K.cy]
+        tri_uv = uv[triangles]  # (F, 3, 2)
+        lo, hi = tri_uv.min(axis=1) - 0.5, tri_uv.max(axis=1) + 0.5  # (F, 2) px
+        inside = (hi[:, 0] >= 0) & (hi[:, 1] >= 0) & (lo[:, 0] <= K.width - 1) & (lo[:, 1] <= K.height - 1)
+        lo, hi = lo[inside], hi[inside]
+        x0 = np.clip(np.floor(lo[:, 0] / T_), 0, nx - 1).astype(np.int64)
+        x1 = np.clip(np.floor(hi[:, 0] / T_), 0, nx - 1).astype(np.int64) + 1
+        y0 = np.clip(np.floor(lo[:, 1] / T_), 0, ny - 1).astype(np.int64)
+        y1 = np.clip(np.floor(hi[:, 1] / T_), 0, ny - 1).astype(np.int64) + 1
+        # Union of tile rectangles: 2D difference array, then running sums.
+        w = nx + 1
+        corners = np.concatenate([y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1])
+        ones = np.ones(len(x0))
+        diff = np.bincount(corners, np.concatenate([ones, -ones, -ones, ones]), minlength=(ny + 1) * w)
+        covered = diff.reshape(ny + 1, w).cumsum(axis=0).cumsum(axis=1)[:ny, :nx] > 0.5
+        return np.flatnonzero(covered)
+
+    # ------------------------------------------------------------ per frame
     def render(
         self,
         arms: Sequence[Mesh],
@@ -237,70 +498,64 @@ class SceneRenderer:
         frame_index: int = 0,
         with_mask: bool = False,
     ) -> RenderOutput:
-        """Ray-cast one frame; ``frame_index`` seeds this frame's noise (same index, same image)."""
+        """Render one frame; ``frame_index`` seeds this frame's noise (same index, same image).
+
+        arms: each arm's (vertices (V, 3) m world, triangles (F, 3)); obj: the object's mesh or None.
+        """
         H, W = self.intrinsics.height, self.intrinsics.width
         rng = np.random.default_rng([self.seed, int(frame_index)])
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(*self._static)  # geometry id 0
-        palette = [self._static_colour]
-        if arms:  # both arms as one geometry
-            av, af, _ = merge_meshes(arms)
-            scene.add_triangles(*_tensors(av, af))
-            palette.append(np.broadcast_to(np.float32(ARM_COLOR), (len(af), 3)))
-        obj_geom = -1
-        if obj is not None:
-            obj_geom = scene.add_triangles(*_tensors(*obj))
-            palette.append(np.broadcast_to(self.object_color, (len(obj[1]), 3)))
-        palette.append(np.zeros((1, 3), np.float32))  # misses
-        offsets = np.cumsum([0] + [len(c) for c in palette[:-1]])
-        hit = scene.cast_rays(self._rays, nthreads=0)
-        t_hit = hit["t_hit"].numpy()
-        geom = hit["geometry_ids"].numpy().astype(np.int64)
-        normal = hit["primitive_normals"].numpy()
-        valid = geom != INVALID_ID
-        z = np.where(valid, t_hit, np.float32(0.0))  # ray directions have unit camera-z: t_hit is z
+        k = int(rng.integers(len(self._static_color)))
+        shift_c, shift_d = (int(s) for s in rng.integers(0, self._pool_shift, 2))
+        color = self._static_color[k].copy()
+        depth = self._static_depth[k].copy()
+        mask = np.zeros((H, W), dtype=bool) if with_mask else None
+        meshes = list(arms) + ([obj] if obj is not None else [])
+        v, f, src = merge_meshes(meshes) if meshes else (np.zeros((0, 3)), np.zeros((0, 3), np.int32), None)
+        pidx = np.zeros(0, np.int64)
+        if len(f):
+            # ---- where the dynamic geometry is nearer than the static scene: pixels, 1/z, triangle.
+            # Vertices rounded to float32 first: what open3d's BVH sees, so both paths agree.
+            pc = (v.astype(np.float32).astype(np.float64) - self.T_world_cam[:3, 3]) @ self.T_world_cam[:3, :3]
+            a = pc[f[:, 0]]
+            n = np.cross(pc[f[:, 1]] - a, pc[f[:, 2]] - a)  # (F, 3) camera frame, |n| = 2 area
+            na = np.einsum("ij,ij->i", n, a)
+            if self.rasterise and pc[:, 2].min() > 1e-3:
+                pidx, inv, tri = self._rasterise(pc, f, n, na)
+            else:
+                pidx, inv, tri = self._cast(v, f, pc)
+        if len(pidx) == 0:
+            return RenderOutput(color=color, depth=depth, depth_true=self._z_static.reshape(H, W).copy(), mask=mask)
+        zp = self._zp_static.copy()
+        zp[pidx] = (1.0 / inv).astype(np.float32)
+        self._fill_ring(zp)
+        # |cos| between a pixel's ray d (unit camera z) and its plane n . p = n . a: |n . d| / (|n| |d|),
+        # and n . d = (n . a) / z.
+        n_len = np.maximum(np.sqrt(np.einsum("ij,ij->i", n, n)), 1e-300)
+        cos_view = self._cos_static.copy()
+        cos_view[pidx] = np.abs(inv * np.take(na / n_len, tri)) / np.take(self._ray_norm, pidx)
 
-        # ---- colour: per-triangle albedo, table texture, two-sided Lambert + headlight, sensor noise.
-        prim = hit["primitive_ids"].numpy().astype(np.int64)
-        tri = np.where(valid, prim + offsets[np.minimum(geom, len(offsets) - 1)], offsets[-1])
-        albedo = np.take(np.concatenate(palette), tri, axis=0)
-        cos_view = np.abs(np.einsum("ij,ij->i", normal, self._unit))
-        shade = np.float32(0.35) + np.float32(0.45) * np.abs(normal @ self._light) + np.float32(0.25) * cos_view
-        shade *= np.where(tri < self._n_table_triangles, self._table_grain, np.float32(1.0))
-        color = albedo * shade[:, None]
-        noise = self._noise(rng, self._colour_noise)
-        color = np.clip(color.reshape(H, W, 3) + noise, 0, 255).astype(np.uint8)
+        # ---- colour of the dynamic pixels: per-triangle albedo x (ambient + light) + albedo x headlight.
+        is_obj = src == len(meshes) - 1 if obj is not None else np.zeros(len(f), dtype=bool)
+        albedo = np.where(is_obj[:, None], self.object_color, np.asarray(ARM_COLOR, dtype=np.float32))  # (F, 3)
+        base = albedo * (0.35 + 0.45 * np.abs(n @ self._light_cam) / n_len)[:, None].astype(np.float32)
+        head = np.float32(0.25) * albedo
+        wp = self._unpad(pidx)
+        noise = np.take(self._colour_pool, pidx + shift_c, axis=0)
+        shaded = np.take(base, tri, axis=0) + np.take(head, tri, axis=0) * np.take(cos_view, pidx)[:, None] + noise
+        color.reshape(-1, 3)[wp] = np.clip(shaded, 0, 255).astype(np.uint8)
 
-        # ---- depth error model.
-        z_true = z.reshape(H, W)
-        zp = np.pad(z_true, 1, mode="edge")
-        z_min = np.minimum(np.minimum(zp[:-2, 1:-1], zp[2:, 1:-1]), np.minimum(zp[1:-1, :-2], zp[1:-1, 2:]))
-        z_max = np.maximum(np.maximum(zp[:-2, 1:-1], zp[2:, 1:-1]), np.maximum(zp[1:-1, :-2], zp[1:-1, 2:]))
-        jump = np.maximum(z_max - z_true, z_true - z_min)
-        edge = (jump > np.maximum(np.float32(0.015), np.float32(0.03) * z_true)) & (z_true > 0)
-        grazing = (cos_view.reshape(H, W) < 0.1) & (z_true > 0)
-        zn = z_true.copy()
-        lost = np.zeros((H, W), dtype=bool)
-        ey, ex = np.nonzero(edge)
-        lost[ey, ex] = rng.random(len(ey)) < self.edge_dropout
-        gy, gx = np.nonzero(grazing)
-        lost[gy, gx] |= rng.random(len(gy)) < 0.8
-        if len(ey) and self.flying_pixels > 0:
-            p_fly = min(1.0, self.flying_pixels * H * W / len(ey))
-            fly = (rng.random(len(ey)) < p_fly) & ~lost[ey, ex]
-            fy, fx = ey[fly], ex[fly]
-            lo = np.where(z_min[fy, fx] > 0, z_min[fy, fx], zn[fy, fx])
-            hi = np.where(z_max[fy, fx] > 0, z_max[fy, fx], zn[fy, fx])
-            zn[fy, fx] = lo + rng.random(len(fy)).astype(np.float32) * (hi - lo)
-        zn += self._noise(rng, self._depth_noise) * (np.float32(self.depth_noise) * zn * zn)
-        zn[lost | (zn < MIN_RANGE) | (zn > MAX_RANGE) | (z_true <= 0)] = 0.0
-        depth = np.rint(zn * np.float32(1.0 / DEPTH_SCALE)).astype(np.uint16)
-        mask = (geom == obj_geom).reshape(H, W) if with_mask else None
-        return RenderOutput(color=color, depth=depth, depth_true=z_true, mask=mask)
-
-    @staticmethod
-    def _noise(rng: np.random.Generator, pool: np.ndarray) -> np.ndarray:
-        """A fresh-looking noise field: one of the pool's fields, shifted by a random offset (cheap, seeded)."""
-        k = int(rng.integers(len(pool)))
-        dy, dx = (int(v) for v in rng.integers(0, pool.shape[1:3]))
-        return np.roll(pool[k], (dy, dx), axis=(0, 1))
+        # ---- depth error model on the dynamic pixels and their 4-neighbours (their edges may change).
+        touched = np.zeros((H + 2, self._Wp), dtype=bool)
+        touched.reshape(-1)[pidx] = True
+        ring = touched.copy()
+        ring[1:] |= touched[:-1]
+        ring[:-1] |= touched[1:]
+        ring[:, 1:] |= touched[:, :-1]
+        ring[:, :-1] |= touched[:, 1:]
+        ring[0], ring[-1], ring[:, 0], ring[:, -1] = False, False, False, False
+        idx = np.flatnonzero(ring)
+        draws = np.take(self._depth_pool, idx + shift_d, axis=0)
+        depth.reshape(-1)[self._unpad(idx)] = self._depth_model(zp, cos_view, idx, draws)
+        if mask is not None:
+            mask.reshape(-1)[wp[is_obj[tri]]] = True
+        return RenderOutput(color=color, depth=depth, depth_true=zp.reshape(H + 2, -1)[1:-1, 1:-1].copy(), mask=mask)
