@@ -107,7 +107,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Run a config's plan (the nightly job)."""
-    config = load_config(args.config)
+    overrides: dict[str, Any] = {}
+    if args.connect:
+        overrides["bus.connect"] = args.connect
+    config = load_config(args.config, overrides)
     out = _session_dir(config, args.out)
     return run_session(config, out, max_seconds=args.seconds, loop=False, with_worker=not args.no_tracking)
 
@@ -198,6 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", help="output folder (default <output.directory>/<time>_<station>)")
     r.add_argument("--seconds", type=float, help="stop after this much recording")
     r.add_argument("--no-tracking", action="store_true", help="do not start the tracking worker")
+    r.add_argument("--connect", action="append", help="zenoh endpoint to connect to, e.g. a zenohd router (repeatable)")
     r.set_defaults(func=cmd_run)
 
     v = sub.add_parser("validate", help="check a config and the programs it references")
