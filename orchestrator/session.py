@@ -98,7 +98,7 @@ class Station:
             from drivers.fake.devices import SimStation
 
             assert obj.sim is not None  # guaranteed by Config validation
-            self.sim = SimStation(obj.sim, clock, seed=obj.sim.seed)
+            self.sim = SimStation(obj.sim, clock, n_keypoints=obj.n_keypoints)
             context["station"] = self.sim
         slots = {"left": st.left, "right": st.right}
         self.arms: dict[str, Arm] = {n: create_arm(s.arm, name=n, **context) for n, s in slots.items()}
@@ -136,6 +136,10 @@ class Station:
                         raise DeviceError(f"{label}: could not connect after {attempt} attempts: {e}") from e
                     log.warning("%s: connect failed (%s), retrying", label, e)
                     time.sleep(0.5 * attempt)
+
+        recorded_pose = getattr(self.camera, "T_world_cam", None)  # a replay brings its recording's pose
+        if recorded_pose is not None:
+            self.T_world_cam = np.asarray(recorded_pose, dtype=np.float64)
 
     def close(self) -> None:
         """Close every connected device, in reverse order, whatever happens."""
