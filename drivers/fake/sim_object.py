@@ -2,11 +2,15 @@
 
 World frame: z up, table top at z = 0, metres and seconds. The object is a set of particles
 linked by distance constraints (stretch: stiff; skip-one "bending": soft; cloth shear). Each
-substep predicts positions under gravity, solves the constraints with Gauss–Seidel over
-*colour classes* (no particle appears twice in a class, so a class is solved as one numpy
-operation), collides with the table and derives velocities. Particles held by a closed
-gripper are pinned to the TCP with their offset in the TCP frame kept. Everything is
-deterministic for a given config (seeded perturbation only).
+substep predicts positions under gravity, then per iteration relaxes all soft constraints at
+once (Jacobi with successive over-relaxation, one sparse product) and projects the stretch
+constraints exactly: they form chains (the rope; the branched rope's trunk and branch; the
+cloth's rows and columns), and the linearised projection of a set of disjoint chains is one
+tridiagonal solve (LAPACK ``dptsv``), the sets Gauss–Seidel one after the other. Long-range
+attachments then keep every particle within its rest geodesic distance of the held ones, the
+table collides and velocities follow. Particles held by a closed gripper are pinned to the TCP
+with their offset in the TCP frame kept. Everything is deterministic for a given config
+(seeded perturbation only).
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.linalg import solveh_banded
+from scipy.linalg.lapack import dptsv
 from scipy.sparse.csgraph import shortest_path
 
 from drivers.config import SimObjectConfig
@@ -25,7 +29,8 @@ from drivers.types import GroundTruth
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 CATEGORY = {"rope": "dlo", "branched_rope": "bdlo", "cloth": "cloth"}
-DIRECT_MAX_CONSTRAINTS = 256  # stretch constraints solved at once (dense Newton step) up to this count
+SOFT_RELAXATION = 1.5  # SOR factor of the Jacobi step over the soft constraints (averaged per particle)
+REFERENCE_SUBSTEP = 1.0 / 300.0  # s; the substep ``SimObject.friction`` is given for
 DEFAULT_KEYPOINTS = {"rope": 20, "branched_rope": 25, "cloth": 36}
 
 
@@ -60,23 +65,9 @@ class _Topology:
     grid_shape: tuple[int, int] | None  # (rows, cols) of the particle grid (cloth)
     start_grasp: tuple[int, ...]  # particles held at the start (left, right)
     chain_sets: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
-    # ^ cloth rows / columns: [(edges (C, 2) chain after chain, linked (C - 1,) bool: k and k+1 share
-    #   a particle, rest (C,) m)], each set projected exactly with one tridiagonal solve
-
-
-def _greedy_colouring(edges: np.ndarray, n_particles: int) -> np.ndarray:
-    """(C,) int64 colour of each constraint such that no two constraints of a colour share a particle."""
-    used: list[set[int]] = [set() for _ in range(n_particles)]
-    colours = np.empty(len(edges), dtype=np.int64)
-    for k, (a, b) in enumerate(edges.tolist()):  # init-time only, O(C * degree)
-        taken = used[a] | used[b]
-        c = 0
-        while c in taken:
-            c += 1
-        colours[k] = c
-        used[a].add(c)
-        used[b].add(c)
-    return colours
+    # ^ the stretch edges as sets of disjoint chains (rope; trunk, branch; cloth rows, columns):
+    #   [(edges (C, 2) chain after chain, linked (C - 1,) bool: k and k+1 share a particle,
+    #   rest (C,) m)], each set projected exactly with one tridiagonal solve
 
 
 def _chain_interp(chain: np.ndarray, chain_s: np.ndarray, s: np.ndarray, n_particles: int) -> sp.csr_matrix:
@@ -192,6 +183,9 @@ def _build_chain_object(cfg: SimObjectConfig, n_keypoints: int) -> _Topology:
         chains=chains,
         grid_shape=None,
         start_grasp=(0, n_trunk - 1),
+        chain_sets=[
+            (e.astype(np.int64), np.ones(len(e) - 1, dtype=bool), r) for e, r in zip(stretch, stretch_rest, strict=True)
+        ],
     )
 
 
@@ -296,7 +290,7 @@ class SimObject:
     max_substep = 1.0 / 300.0  # s; small substeps with few iterations converge best for PBD
     grasp_radius = 0.02  # m; a closing gripper grasps the nearest particle within this distance
     pad_radius = 0.021  # m; particles this close (along the object) to the grasped one are clamped too
-    friction = 0.6  # fraction of the tangential motion the table removes per substep in contact
+    friction = 0.6  # fraction of the tangential motion the table removes per 1/300 s substep in contact
 
     def __init__(
         self,
@@ -325,12 +319,7 @@ class SimObject:
         self._offsets: dict[str, np.ndarray] = {}  # gripper -> (k, 3) their offsets in the TCP frame
         self._tcp: dict[str, np.ndarray] = {}  # last TCP pose per gripper
         self._was_closed: dict[str, bool] = {}  # grasping happens when a gripper closes, not while closed
-        self.direct = len(topo.stretch) <= DIRECT_MAX_CONSTRAINTS and not topo.chain_sets
-        if self.direct:
-            self._init_direct()
-        self._colours = self._colour_constraints()
-        self._inv_mass = np.ones(self.n_particles)
-        self._update_weights()
+        self._init_soft()
         # Geodesic rest distances (P, P) along the structural edges, for the long-range attachments.
         n = self.n_particles
         graph = sp.csr_matrix((topo.stretch_rest, (topo.stretch[:, 0], topo.stretch[:, 1])), shape=(n, n))
@@ -338,102 +327,100 @@ class SimObject:
         if topo.grid_shape is not None:  # in a flat sheet the geodesic is the straight line
             geo = np.linalg.norm(topo.rest_layout[:, None, :] - topo.rest_layout[None, :, :], axis=2)
         self._geodesic = geo
+        self._inv_mass = np.ones(self.n_particles)
+        self._update_weights()
         kp_rest = topo.kp_map @ topo.rest_layout
         dist = np.linalg.norm(topo.rest_layout[:, None, :] - kp_rest[None, :, :], axis=2)
         self.particle_keypoint = np.argmin(dist, axis=1)  # (P,) nearest keypoint in the material frame
 
     # ------------------------------------------------------------ set-up
-    def _colour_constraints(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-        """Colour classes [(i, j, rest, stiffness)]: soft ones first, then stretch ones unless solved directly."""
+    def _init_soft(self) -> None:
+        """Sparse maps of the soft constraints: (B, P) edge differences and per-particle constraint counts."""
         topo = self.topology
-        soft_k = 1.0 - (1.0 - topo.soft_stiffness) ** (1.0 / self.iterations)
+        soft_k = topo.soft_stiffness  # per substep: one relaxation pass per substep
         keep = soft_k > 0.0
-        groups = [(topo.soft[keep], topo.soft_rest[keep], soft_k[keep])]
-        if not self.direct and not topo.chain_sets:
-            groups.append((topo.stretch, topo.stretch_rest, np.ones(len(topo.stretch))))
-        classes = []
-        for e, r, k in groups:  # soft classes first, stretch classes solved after them
-            col = _greedy_colouring(e, self.n_particles)
-            for c in range(int(col.max()) + 1 if len(col) else 0):
-                m = col == c
-                classes.append((e[m, 0], e[m, 1], r[m], k[m]))
-        return classes
-
-    def _init_direct(self) -> None:
-        """Sparsity pattern of J W J^T for the stretch constraints (pairs sharing a particle) and of J^T."""
-        e = self.topology.stretch
-        n_c = len(e)
-        incidences: dict[int, list[tuple[int, float]]] = {}
-        for c, (i, j) in enumerate(e.tolist()):  # init-time only
-            incidences.setdefault(i, []).append((c, -1.0))
-            incidences.setdefault(j, []).append((c, 1.0))
-        pa, pb, pp, ps = [], [], [], []
-        for p, inc in incidences.items():
-            for a, sa in inc:
-                for b, sb in inc:
-                    if a != b:
-                        pa.append(a), pb.append(b), pp.append(p), ps.append(sa * sb)
-        self._pair_a, self._pair_b = np.array(pa, np.int64), np.array(pb, np.int64)
-        self._pair_p, self._pair_sign = np.array(pp, np.int64), np.array(ps)
-        rows = np.concatenate([e[:, 0], e[:, 1]])
-        cols = np.concatenate([np.arange(n_c), np.arange(n_c)])
-        vals = np.concatenate([-np.ones(n_c), np.ones(n_c)])
-        self._jt = sp.csr_matrix((vals, (rows, cols)), shape=(self.n_particles, n_c))  # (P, C) signs
-        self._diag = np.arange(n_c)
-
-    def _solve_stretch_direct(self, x: np.ndarray) -> np.ndarray:
-        """One Newton projection of all stretch constraints at once: solve (J W J^T) lam = -C, x += W J^T lam."""
-        e, w = self.topology.stretch, self._inv_mass
-        d = x[e[:, 1]] - x[e[:, 0]]
-        length = np.maximum(np.sqrt(np.einsum("ij,ij->i", d, d)), 1e-12)
-        n = d / length[:, None]
-        a = np.zeros((len(e), len(e)))
-        a[self._diag, self._diag] = w[e[:, 0]] + w[e[:, 1]] + 1e-9
-        a[self._pair_a, self._pair_b] = (
-            self._pair_sign * w[self._pair_p] * np.einsum("ij,ij->i", n[self._pair_a], n[self._pair_b])
+        e = topo.soft[keep]
+        self._soft_edges, self._soft_rest, self._soft_k = e, topo.soft_rest[keep], soft_k[keep]
+        n_b = len(e)
+        rows = np.concatenate([np.arange(n_b), np.arange(n_b)])
+        self._soft_diff = sp.csr_matrix(  # (B, P): d_b = x_j - x_i
+            (np.concatenate([-np.ones(n_b), np.ones(n_b)]), (rows, np.concatenate([e[:, 0], e[:, 1]]))),
+            shape=(n_b, self.n_particles),
         )
-        lam = np.linalg.solve(a, self.topology.stretch_rest - length)
-        return x + w[:, None] * (self._jt @ (n * lam[:, None]))
-
-    def _solve_chains_banded(self, x: np.ndarray) -> np.ndarray:
-        """Exact projection of each set of disjoint chains (cloth rows, then columns): one tridiagonal solve each."""
-        w = self._inv_mass
-        for e, linked, rest in self.topology.chain_sets:
-            i, j = e[:, 0], e[:, 1]
-            d = x[j] - x[i]
-            length = np.maximum(np.sqrt(np.einsum("ij,ij->i", d, d)), 1e-12)
-            n = d / length[:, None]
-            ab = np.empty((2, len(e)))
-            ab[1] = w[i] + w[j] + 1e-9
-            ab[0, 0] = 0.0
-            ab[0, 1:] = np.where(linked, -w[j[:-1]] * np.einsum("ij,ij->i", n[:-1], n[1:]), 0.0)
-            lam = solveh_banded(ab, rest - length, check_finite=False)
-            f = n * lam[:, None]
-            x[i] -= w[i, None] * f
-            x[j] += w[j, None] * f
-        return x
+        self._soft_count = np.maximum(np.bincount(e.ravel(), minlength=self.n_particles), 1)
 
     def _update_weights(self) -> None:
-        """Per colour class, the share of a correction each end takes (0 for pinned particles)."""
+        """Inverse masses (0 for pinned particles) and everything derived from them."""
         w = np.ones(self.n_particles)
         pinned = np.concatenate([np.zeros(0, np.int64), *self._pins.values()])
         w[pinned] = 0.0
         self._inv_mass = w
         # Long-range attachments (Kim et al. 2012): no particle may drift farther from a pinned
         # particle than its geodesic rest distance; one vectorised projection per pinned particle.
-        self._lra = [(p, self._geodesic[p], w > 0) for p in self.held.values()]
-        self._solve = []
-        for i, j, rest, k in self._colours:
-            ws = w[i] + w[j]
-            safe = np.where(ws > 0, ws, 1.0)
-            ai = np.where(ws > 0, w[i] / safe, 0.0)[:, None]
-            aj = np.where(ws > 0, w[j] / safe, 0.0)[:, None]
-            self._solve.append((i, j, rest, k, ai, aj))
+        held = np.array(list(self.held.values()), dtype=np.int64)
+        self._lra = (held, self._geodesic[held], np.where(w > 0, self._geodesic[held], np.inf))
+        # Soft constraints, Jacobi: particle p moves by SOR / count_p * sum of its shares of the
+        # corrections, a share being w_p / (w_i + w_j) of the constraint's correction (0 if pinned).
+        e = self._soft_edges
+        n_b = len(e)
+        ws = w[e[:, 0]] + w[e[:, 1]]
+        safe = np.where(ws > 0, ws, 1.0)
+        share_i = np.where(ws > 0, w[e[:, 0]] / safe, 0.0) * SOFT_RELAXATION / self._soft_count[e[:, 0]]
+        share_j = np.where(ws > 0, w[e[:, 1]] / safe, 0.0) * SOFT_RELAXATION / self._soft_count[e[:, 1]]
+        self._soft_apply = sp.csr_matrix(  # (P, B): x += soft_apply @ (c_b d_b), c_b = k (1 - rest / length)
+            (np.concatenate([share_i, -share_j]), (np.concatenate([e[:, 0], e[:, 1]]), np.tile(np.arange(n_b), 2))),
+            shape=(self.n_particles, n_b),
+        )
+        # Stretch chains: per set, the inverse masses at both ends of each edge and the couplings.
+        self._chains = []
+        for edges, linked, rest in self.topology.chain_sets:
+            i, j = edges[:, 0], edges[:, 1]
+            couple = np.where(linked, -w[j[:-1]], 0.0)  # (J W J^T)_{k,k+1} = couple_k * n_k . n_k+1
+            self._chains.append((i, j, rest, w[i, None], w[j, None], w[i] + w[j] + 1e-9, couple))
 
-    @property
-    def n_colours(self) -> int:
-        """Number of constraint colour classes solved per iteration."""
-        return len(self._colours)
+    def _long_range(self, x: np.ndarray) -> np.ndarray:
+        """Long-range attachments: pull every free particle back within its rest geodesic distance of each held one.
+
+        x: (P, 3), updated in place (held particles in order, as a sequential projection) and returned.
+        """
+        held, limits, free_limits = self._lra  # (H,), (H, P) m, (H, P) m (inf for pinned particles)
+        if not len(held):
+            return x
+        d = x[None, :, :] - x[held][:, None, :]  # (H, P, 3)
+        if not (np.einsum("hpk,hpk->hp", d, d) > free_limits * free_limits).any():
+            return x  # the common case: nothing too far from any held particle
+        for h, p in enumerate(held):
+            dp = x - x[p]
+            dist = np.sqrt(np.einsum("ij,ij->i", dp, dp))
+            over = dist > free_limits[h]
+            if over.any():
+                x[over] -= dp[over] * (1.0 - limits[h, over] / dist[over])[:, None]
+        return x
+
+    def _solve_soft(self, x: np.ndarray) -> np.ndarray:
+        """One Jacobi (SOR) pass over all soft constraints; x: (P, 3), returns the new positions."""
+        d = self._soft_diff @ x
+        length = np.sqrt(np.einsum("ij,ij->i", d, d))
+        c = self._soft_k * (1.0 - self._soft_rest / np.maximum(length, 1e-12))
+        return x + self._soft_apply @ (d * c[:, None])
+
+    def _solve_chains(self, x: np.ndarray) -> np.ndarray:
+        """Exact linearised projection of each set of disjoint stretch chains: one tridiagonal solve each.
+
+        For the chain set's constraints C_k = |x_j - x_i| - rest_k with unit directions n_k, solves
+        (J W J^T) lam = -C (tridiagonal: consecutive constraints of a chain share one particle) and
+        moves x by W J^T lam. x: (P, 3), updated in place and returned.
+        """
+        for i, j, rest, wi, wj, diag, couple in self._chains:
+            d = np.take(x, j, axis=0) - np.take(x, i, axis=0)
+            length = np.maximum(np.sqrt(np.einsum("ij,ij->i", d, d)), 1e-12)
+            n = d / length[:, None]
+            off = couple * np.einsum("ij,ij->i", n[:-1], n[1:])
+            lam = dptsv(diag, off, rest - length)[2]
+            f = n * lam[:, None]
+            x[i] -= wi * f
+            x[j] += wj * f
+        return x
 
     def reset(self, tcp_poses: Sequence[tuple[str, np.ndarray]], settle_time: float = 1.5) -> None:
         """Place the object hanging from the given grippers (in order: first gets the first anchor) and settle.
@@ -553,36 +540,26 @@ class SimObject:
             a = np.concatenate([self._offsets[n] @ start[n][:3, :3].T + start[n][:3, 3] for n in held])
             b = np.concatenate([self._offsets[n] @ poses[n][:3, :3].T + poses[n][:3, 3] for n in held])
         decay = math.exp(-self.damping * h)
+        friction = 1.0 - (1.0 - self.friction) ** (h / REFERENCE_SUBSTEP)  # same loss per second at any substep
         gh2 = GRAVITY * h * h
         r = self.radius
+        soft = len(self._soft_edges) > 0
         x, v = self.x, self.v
         for k in range(1, n_sub + 1):
-            prev = x.copy()
+            prev = x
             x = x + v * (h * decay) + gh2
             if held:
                 x[idx] = a + (k / n_sub) * (b - a)
+            if soft:  # soft constraints once per substep (their stiffness is per substep)
+                x = self._solve_soft(x)
             for _ in range(self.iterations):
-                for i, j, rest, stiff, ai, aj in self._solve:
-                    d = x[j] - x[i]
-                    length = np.sqrt(np.einsum("ij,ij->i", d, d))
-                    corr = d * (stiff * (1.0 - rest / np.maximum(length, 1e-12)))[:, None]
-                    x[i] += ai * corr
-                    x[j] -= aj * corr
-                if self.direct:
-                    x = self._solve_stretch_direct(x)
-                elif self.topology.chain_sets:
-                    x = self._solve_chains_banded(x)
-                for p, limit, free in self._lra:
-                    d = x - x[p]
-                    dist = np.sqrt(np.einsum("ij,ij->i", d, d))
-                    over = free & (dist > limit)
-                    if over.any():
-                        x[over] -= d[over] * (1.0 - limit[over] / dist[over])[:, None]
+                x = self._solve_chains(x)
+                x = self._long_range(x)
             contact = x[:, 2] < r
             if contact.any():
                 x[contact, 2] = r
-                x[contact, :2] -= self.friction * (x[contact, :2] - prev[contact, :2])
-            v = (x - prev) / h
+                x[contact, :2] -= friction * (x[contact, :2] - prev[contact, :2])
+            v = (x - prev) * (1.0 / h)
         self.x, self.v = x, v
         self._tcp.update({n: T.copy() for n, T in poses.items()})
         self.time += dt
