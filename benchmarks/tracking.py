@@ -51,9 +51,11 @@ from orchestrator.plan import RunItem  # noqa: E402
 from orchestrator.programs import plan_motion  # noqa: E402
 from orchestrator.session import Station  # noqa: E402
 from tracking.anchors import CORNER  # noqa: E402
+from tracking.init import InitialisationError  # noqa: E402
 from tracking.metrics import distance_to_polyline, sequence_summary  # noqa: E402
 from tracking.params import TrackingParams  # noqa: E402
 from tracking.pipeline import LivePipeline, PipelineOutput  # noqa: E402
+from tracking.segmentation import segment_by_difference  # noqa: E402
 from tracking.worker import KIND, ArmModel, tracking_params  # noqa: E402
 
 OBJECTS = ("rope", "branched_rope", "cloth")
@@ -275,23 +277,40 @@ def init_consistency(
     height: int,
     speed: str,
     seeds: int,
-    after_s: float,
+    at_s: float,
     sim: dict[str, Any] | None = None,
     settle_s: float = 0.5,
+    reference_gap: int = 10,
 ) -> dict[str, Any]:
-    """Initialise from the same D0/D1 pair rendered with ``seeds`` camera noise seeds -> spread, mm."""
+    """Initialise the same scene rendered with ``seeds`` camera noise seeds -> keypoint spread, mm.
+
+    For each seed the frames the pipeline would use are rendered: D0 at rest, the three recent
+    references (every ``reference_gap`` frames before D1) and D1 at ``at_s`` s into the motion;
+    the pipeline's initialisation step (difference segmentation, then ``Tracker.initialise`` with
+    the TCPs and grasp flags) runs on them. Spread per keypoint over the seeds: RMS distance to
+    the mean position ("std") and the largest distance ("maxdev"); the maximum over keypoints.
+    """
     inits, failures = [], 0
+    cfg0 = station_config(width, height)
+    fps = cfg0.station.camera.fps
+    k1 = int(round((settle_s + at_s) * fps))
+    times = [0.0] + [(k1 - j * reference_gap) / fps for j in (3, 2, 1)] + [k1 / fps]
     for seed in range(seeds):
         cfg = station_config(width, height, camera_seed=seed)
         obj = object_config(cfg, name, sim)
-        seq = simulate(cfg, obj, 0.0, speed, settle_s, frame_times=[0.0, settle_s + after_s])
-        # two frames only: no waiting for the difference cloud to stop growing
-        outs, _, _ = run_pipeline(seq, params_for(cfg, obj), KIND.get(obj.category), init_stable_frames=0)
-        if outs[-1].status == "init":
-            inits.append(outs[-1].keypoints)
-        else:
+        seq = simulate(cfg, obj, 0.0, speed, settle_s, frame_times=times)
+        pipe = LivePipeline(params_for(cfg, obj), seq.K, seq.T_world_cam, KIND.get(obj.category))
+        V, F, tcp, closed = ArmModel(seq.bases).from_state(seq.frames[-1].state)
+        d = [pipe.decimate(f.depth.astype(np.float32) * np.float32(1e-3)) for f in seq.frames]
+        seg = segment_by_difference(
+            np.stack(d[:-1]), d[-1], pipe.K_seg, seq.T_world_cam, pipe.seg_params, pipe.arm_mask(d[-1], V, F)
+        )
+        try:
+            ini, _ = pipe.tracker.initialise(seg.points, tcp=tcp, kind=pipe.kind, gripper_closed=closed)
+            inits.append(ini.keypoints)
+        except InitialisationError:
             failures += 1
-    res: dict[str, Any] = {"seeds": seeds, "init_failures": failures}
+    res: dict[str, Any] = {"seeds": seeds, "init_failures": failures, "init_check_t_s": at_s}
     sizes = {len(x) for x in inits}
     if len(inits) < 2 or len(sizes) != 1:
         res["note"] = f"keypoint counts differ across seeds: {sorted(sizes)}" if len(sizes) > 1 else "too few inits"
@@ -359,7 +378,8 @@ def main() -> None:
     ap.add_argument("--only", choices=list(OBJECTS), action="append", help="object(s) to run (repeatable)")
     ap.add_argument("--repeats", type=int, default=3, help="pipeline runs per sequence (timing medians)")
     ap.add_argument("--seeds", type=int, default=10, help="camera seeds of the initialisation check (0: skip)")
-    ap.add_argument("--init-after", type=float, default=1.0, help="D1 of the init check, s into the motion")
+    ap.add_argument("--init-at", type=float, default=None,
+                    help="D1 of the init check, s into the motion (default: when the sequence initialised)")
     ap.add_argument("--cloth-length", type=float, default=0.55,
                     help="sim cloth width between the held corners, m (mock.yaml's 0.4 m cannot span the grippers' "
                          "0.5 m: the sim then hangs it from one corner)")
@@ -376,7 +396,8 @@ def main() -> None:
         r = evaluate(seq, params_for(cfg, obj), a.repeats)
         r["render_s"] = round(t_render, 1)
         if a.seeds > 0:
-            ic = init_consistency(name, a.width, a.height, a.speed, a.seeds, a.init_after, sims.get(name))
+            at = a.init_at if a.init_at is not None else (r["init_t_s"] if r["init_t_s"] is not None else 1.0)
+            ic = init_consistency(name, a.width, a.height, a.speed, a.seeds, at, sims.get(name))
             r.update({k: v for k, v in ic.items() if k.startswith("spread") or k == "init_failures"})
             if "note" in ic:
                 r["init_note"] = ic["note"]

@@ -10,9 +10,10 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from tracking.geometry import object_image
+from tracking.geometry import object_image, project_points
 from tracking.params import TrackingParams
 from tracking.skeleton import JUNCTION, LEAF, skeleton_graph
 
@@ -173,11 +174,19 @@ def _polyline_length(p: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
 
 
-def contour_3d(cloud: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, params: TrackingParams) -> Contour3D | None:
+def contour_3d(
+    cloud: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    params: TrackingParams,
+    held: np.ndarray | None = None,
+) -> Contour3D | None:
     """Outer contour of a 2D object's cloud (N, 3) m split at four corners into lifted sides; None if no contour.
 
-    Corners are the contour points nearest the minimum-area rectangle's corners; corner 0 is the
-    one nearest the image's top-left, sides follow the contour order.
+    Corners are the contour points nearest the minimum-area rectangle's corners; a rectangle corner
+    nearest a held point (``held`` (H, 3) m: TCPs of closed grippers, the cloth's held corners) is
+    replaced by the contour point nearest that point's projection. Corner 0 is the one nearest the
+    image's top-left, sides follow the contour order.
     """
     if len(cloud) < 10:
         return None
@@ -188,7 +197,13 @@ def contour_3d(cloud: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, params
     c = max(cs, key=cv2.contourArea).reshape(-1, 2).astype(np.float64)
     if len(c) < 8:
         return None
-    box = cv2.boxPoints(cv2.minAreaRect(c.astype(np.float32)))
+    box = cv2.boxPoints(cv2.minAreaRect(c.astype(np.float32))).astype(np.float64)
+    held = np.zeros((0, 3)) if held is None else np.asarray(held, np.float64).reshape(-1, 3)
+    if len(held):
+        h_uv = project_points(held, Kc, T_world_cam)[0]
+        cost = np.linalg.norm(h_uv[:, None, :] - box[None, :, :], axis=2)
+        r, k = linear_sum_assignment(cost)
+        box[k] = h_uv[r]
     ci = np.array([int(np.argmin(np.linalg.norm(c - b, axis=1))) for b in box])
     ci = np.sort(np.unique(ci))
     if len(ci) < 4:
@@ -207,12 +222,26 @@ def contour_3d(cloud: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, params
     return Contour3D(lifted, sides_uv, lengths, Kc, uv)
 
 
+def _resample_by_3d(uv: np.ndarray, xyz: np.ndarray, n: int) -> np.ndarray:
+    """n image points (n, 2) along a side uv (M, 2) equally spaced in the 3D arc length of its
+    lifted points xyz (M, 3) m (lightly smoothed), so foreshortening does not bunch grid nodes."""
+    if len(uv) < 2:
+        return np.repeat(uv[:1], n, axis=0)
+    p = _smooth_polyline(xyz, 5)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    if s[-1] <= 0:
+        return _resample(uv, n)
+    t = np.linspace(0.0, s[-1], n)
+    return np.stack([np.interp(t, s, uv[:, i]) for i in range(2)], axis=1)
+
+
 def grid_boundary_uv(ct: Contour3D, rows: int, cols: int) -> np.ndarray:
-    """Coons-patch grid (rows, cols, 2) in the contour image from its four sides resampled by arc length."""
-    top = _resample(ct.sides_uv[0], cols)
-    right = _resample(ct.sides_uv[1], rows)
-    bottom = _resample(ct.sides_uv[2], cols)
-    left = _resample(ct.sides_uv[3], rows)
+    """Coons-patch grid (rows, cols, 2) in the contour image from its four sides, each resampled
+    evenly by 3D arc length."""
+    top = _resample_by_3d(ct.sides_uv[0], ct.sides[0], cols)
+    right = _resample_by_3d(ct.sides_uv[1], ct.sides[1], rows)
+    bottom = _resample_by_3d(ct.sides_uv[2], ct.sides[2], cols)
+    left = _resample_by_3d(ct.sides_uv[3], ct.sides[3], rows)
     u = np.linspace(0.0, 1.0, cols)[None, :, None]
     v = np.linspace(0.0, 1.0, rows)[:, None, None]
     c00, c01, c10, c11 = top[0], top[-1], bottom[0], bottom[-1]
@@ -239,10 +268,12 @@ def lift_grid(ct: Contour3D, cloud: np.ndarray, rows: int, cols: int) -> np.ndar
 
 
 def detect_anchors_2d(
-    cloud: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, params: TrackingParams
+    cloud: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, params: TrackingParams, held: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per-frame 2D anchors: grid boundary points (A, 3) float64 m and kinds (A,) CORNER / BOUNDARY."""
-    ct = contour_3d(cloud, K, T_world_cam, params)
+    """Per-frame 2D anchors: grid boundary points (A, 3) float64 m and kinds (A,) CORNER / BOUNDARY.
+
+    held: (H, 3) m TCPs of closed grippers (held corners, see ``contour_3d``)."""
+    ct = contour_3d(cloud, K, T_world_cam, params, held)
     if ct is None:
         return np.zeros((0, 3)), np.zeros(0, np.int64)
     R, C = params.grid_rows, params.grid_cols

@@ -6,7 +6,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
-from scipy.spatial import cKDTree
 
 from tracking.anchors import (
     boundary_indices,
@@ -15,7 +14,7 @@ from tracking.anchors import (
     skeleton_3d,
 )
 from tracking.classify import ObjectClass, classify_object
-from tracking.geometry import farthest_point_sampling, project_points
+from tracking.geometry import project_points
 from tracking.params import TrackingParams
 from tracking.skeleton import LEAF
 from tracking.solver import edge_colouring, solve_keypoints
@@ -119,6 +118,29 @@ def root_leaf(
     return int(leaves[np.argmin(uv[:, 0])])
 
 
+def allocate_keypoints(
+    lengths: np.ndarray, n_free: int, order: np.ndarray | None = None, tie: float = 0.25
+) -> np.ndarray:
+    """Free keypoints (B,) int per branch of lengths (B,) m so all edges are about equally long.
+
+    Branch k gets e_k = m_k + 1 edges with e_k proportional to its length (largest remainder,
+    at least one edge each) and sum(m_k) = n_free. Remainders within the same ``tie`` bin count
+    as equal and go by ``order`` (B,) (e.g. the branches' traversal order): two branches of about
+    the same length then get the same counts whatever the sensor noise.
+    """
+    B = len(lengths)
+    total = n_free + B
+    order = np.arange(B) if order is None else np.asarray(order)
+    share = total * np.asarray(lengths, np.float64) / max(float(np.sum(lengths)), 1e-12)
+    e = np.maximum(1, np.floor(share).astype(np.int64))
+    while e.sum() < total:
+        e[np.lexsort((order, -np.floor((share - e) / tie)))[0]] += 1
+    while e.sum() > total and (e > 1).any():
+        cand = np.nonzero(e > 1)[0]
+        e[cand[int(np.argmin((share - e)[cand]))]] -= 1
+    return e - 1
+
+
 def snap_held_leaves(
     nodes: np.ndarray, kinds: np.ndarray, branches: list[tuple[int, int, np.ndarray]], held: np.ndarray, gate_m: float
 ) -> tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]:
@@ -162,9 +184,11 @@ def initialise_1d(
 ) -> Initialisation:
     """Initialise a 1D object (rope, branched rope) from its segmented cloud (N, 3) float64 m world.
 
-    Anchors = skeleton leaves and junctions; warm start = FPS on the cloud seeded from the anchors,
-    each sample assigned to the nearest skeleton branch and ordered along it; edges chain each
-    branch node to node; rest length of a branch = its 3D arc length / its edge count. Keypoint 0
+    Anchors = skeleton leaves and junctions; each branch gets keypoints in proportion to its
+    length (``allocate_keypoints``) and the warm start places them evenly along its skeleton
+    (the paper's FPS warm start gives seed-dependent per-branch counts and spacings, which
+    Gauss-Seidel evens out only slowly along a chain: repeated initialisations then disagree);
+    edges chain each branch node to node; rest length of a branch = its 3D arc length / its edge count. Keypoint 0
     is the leaf at ``root_hint`` (3,) m or the image's leftmost (``root_leaf``); branches are
     numbered depth-first, leftmost (image) first at junctions. held: (H, 3) m TCPs of closed
     grippers: the ends they hold are placed there (``snap_held_leaves``).
@@ -179,31 +203,28 @@ def initialise_1d(
     n_free = max(0, params.n_keypoints_1d - Nn)
     polys = [p for _, _, p in branches]
     lengths = np.array([_polyline_arc(p)[-1] for p in polys])
-    # warm start: FPS from the anchors, assigned to branches by nearest skeleton sample
-    fps = cloud[farthest_point_sampling(cloud, n_free, seeds=nodes)]
-    samples = np.concatenate(polys)
-    owner = np.concatenate([np.full(len(p), k) for k, p in enumerate(polys)])
-    arc = np.concatenate([_polyline_arc(p) for p in polys])
-    _, nn = cKDTree(samples).query(fps) if len(fps) else (None, np.zeros(0, np.int64))
-    f_branch, f_arc = owner[nn], arc[nn]
     root = root_leaf(nodes, kinds, K, T_world_cam, root_hint, 2.0 * params.grasp_gate_m)
     node_u = project_points(nodes, K, T_world_cam)[0][:, 0]
+    dfs = _dfs_branch_order(Nn, branches, root, node_u)
+    rank = np.empty(len(branches), np.int64)
+    rank[[k for k, _ in dfs]] = np.arange(len(dfs))
+    counts = allocate_keypoints(lengths, n_free, rank)
     X: list[np.ndarray] = [nodes[root]]
     node_kp = np.full(Nn, -1)
     node_kp[root] = 0
     edges: list[tuple[int, int]] = []
     rest: list[float] = []
     chains: list[np.ndarray] = []
-    for k, rev in _dfs_branch_order(Nn, branches, root, node_u):
+    for k, rev in dfs:
         a, b, _ = branches[k]
         start, end = (b, a) if rev else (a, b)
-        sel = np.nonzero(f_branch == k)[0]
-        sel = sel[np.argsort(f_arc[sel])]
-        if rev:
-            sel = sel[::-1]
         chain = [int(node_kp[start])]
-        for i in sel:
-            X.append(fps[i])
+        poly = polys[k][::-1] if rev else polys[k]
+        arc = _polyline_arc(poly)
+        t = arc[-1] * np.arange(1, counts[k] + 1) / (counts[k] + 1)
+        free = np.stack([np.interp(t, arc, poly[:, i]) for i in range(3)], axis=1)
+        for x in free:
+            X.append(x)
             chain.append(len(X) - 1)
         if node_kp[end] < 0:
             X.append(nodes[end])
@@ -233,19 +254,33 @@ def grid_topology(rows: int, cols: int, dx: float, dy: float) -> tuple[np.ndarra
 
 
 def initialise_2d(
-    cloud: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, params: TrackingParams, obj: ObjectClass
+    cloud: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    params: TrackingParams,
+    obj: ObjectClass,
+    held: np.ndarray | None = None,
 ) -> Initialisation:
     """Initialise a rectangular 2D object (cloth) from its segmented cloud (N, 3) float64 m world.
 
     Contour -> four corners -> sides; a rows x cols Coons (bilinear) grid bounded by the sides,
     lifted by the nearest cloud point; boundary nodes are anchors; rest lengths from the measured
-    side lengths (mean of opposite sides / edge count).
+    side lengths (mean of opposite sides / edge count). held: (H, 3) m TCPs of closed grippers:
+    they pick the held corners of the contour, and a grid corner within ``grasp_gate_m`` of one
+    is placed at it.
     """
-    ct = contour_3d(cloud, K, T_world_cam, params)
+    ct = contour_3d(cloud, K, T_world_cam, params, held)
     if ct is None:
         raise InitialisationError("no contour in the segmented cloud")
     R, C = params.grid_rows, params.grid_cols
     X0 = lift_grid(ct, cloud, R, C)
+    if held is not None and len(held):
+        corners = np.array([0, C - 1, (R - 1) * C, R * C - 1])
+        hp = np.asarray(held, np.float64).reshape(-1, 3)
+        cost = np.linalg.norm(hp[:, None, :] - X0[corners][None, :, :], axis=2)
+        r, k = linear_sum_assignment(cost)
+        ok = cost[r, k] <= params.grasp_gate_m
+        X0[corners[k[ok]]] = hp[r[ok]]
     dx = 0.5 * (ct.lengths[0] + ct.lengths[2]) / (C - 1)
     dy = 0.5 * (ct.lengths[1] + ct.lengths[3]) / (R - 1)
     E, rest = grid_topology(R, C, dx, dy)
@@ -278,4 +313,4 @@ def initialise(
         obj = ObjectClass(kind, obj.line_ratio, obj.plane_ratio)
     if obj.kind == "1d":
         return initialise_1d(cloud, K, T_world_cam, params, obj, root_hint, held)
-    return initialise_2d(cloud, K, T_world_cam, params, obj)
+    return initialise_2d(cloud, K, T_world_cam, params, obj, held)

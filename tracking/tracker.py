@@ -159,12 +159,19 @@ def track_frame(
 
 
 def detect_anchors(
-    kind: str, cloud: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, params: TrackingParams
+    kind: str,
+    cloud: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    params: TrackingParams,
+    held: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Re-detect anchors of a "1d" or "2d" object in a segmented cloud (M, 3) m -> (positions (D, 3), kinds (D,))."""
+    """Re-detect anchors of a "1d" or "2d" object in a segmented cloud (M, 3) m -> (positions (D, 3), kinds (D,)).
+
+    held: (H, 3) m TCPs of closed grippers (2D: they mark held corners)."""
     if kind == "1d":
         return detect_anchors_1d(cloud, K, T_world_cam, params)
-    return detect_anchors_2d(cloud, K, T_world_cam, params)
+    return detect_anchors_2d(cloud, K, T_world_cam, params, held)
 
 
 def smooth_causal(traj: np.ndarray, window: int) -> np.ndarray:
@@ -265,7 +272,10 @@ class Tracker:
         if len(cloud) < p.min_object_points:
             return self._result(self.keypoints, cloud, 0, na, force_bad=True)
         t0 = time.perf_counter()
-        det, kinds = detect_anchors(self.topology.kind, cloud, self.K, self.T, p)
+        held = None
+        if tcp is not None and gripper_closed is not None:
+            held = np.asarray(tcp, np.float64).reshape(-1, 3)[np.asarray(gripper_closed, bool)]
+        det, kinds = detect_anchors(self.topology.kind, cloud, self.K, self.T, p, held)
         t1 = time.perf_counter()
         pred = self.keypoints if self._velocity is None else self.keypoints + self._velocity
         X, matched = track_frame(self.keypoints, self.topology, cloud, det, kinds, p, tcp, self.grasp_idx, pred)
