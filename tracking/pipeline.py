@@ -76,8 +76,8 @@ class LivePipeline:
         kind: str | None = None,
         min_init_points: int = 150,
         reference_gap: int = 10,
-        init_stable_frames: int = 5,
-        init_max_growth: float = 0.1,
+        init_stable_frames: int = 10,
+        init_max_growth: float = 0.05,
         init_grasp_patience: int = 90,
     ) -> None:
         """kind: "1d"/"2d" when the object's category is known (else classified from the cloud).

@@ -1,0 +1,97 @@
+"""LivePipeline on the simulated station: each object runs its library program and is tracked.
+
+Short 640x480 sequences (simulated time, deterministic): the pipeline must initialise, never lose
+the track, keep the keypoints on the true object (GT error to the centreline / mid-surface minus
+the radius), hold the grasped ends at the grippers and keep its edge lengths.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from benchmarks.tracking import (
+    anchor_gt_error_mm,
+    gt_error_mm,
+    object_config,
+    params_for,
+    run_pipeline,
+    simulate,
+    station_config,
+)
+from tracking.anchors import CORNER, JUNCTION, LEAF
+from tracking.worker import KIND
+
+pytestmark = pytest.mark.slow
+
+W, H = 640, 480  # at 320x240 the 14 mm rope is ~3 px wide and the sim's depth-edge dropout eats it
+SECONDS = 3.5
+
+
+def _run(name: str, sim: dict | None = None):
+    cfg = station_config(W, H)
+    obj = object_config(cfg, name, sim)
+    seq = simulate(cfg, obj, SECONDS, "medium")
+    outs, _, _ = run_pipeline(seq, params_for(cfg, obj), KIND[obj.category])
+    statuses = [o.status for o in outs]
+    assert "init" in statuses, f"{name} never initialised: {outs[-1].note}"
+    return seq, outs, statuses.index("init")
+
+
+def _track(name: str, sim: dict | None = None):
+    seq, outs, first = _run(name, sim)
+    after = outs[first:]
+    assert "lost" not in [o.status for o in after], [o.status for o in after]
+    assert len(after) >= 30  # at least a second of tracking to judge
+    frames = seq.frames[first:]
+    gt = np.array([gt_error_mm(o.keypoints, f.gt) for o, f in zip(after, frames, strict=True)])
+    anchors = np.array([anchor_gt_error_mm(o, f.gt) for o, f in zip(after, frames, strict=True)])
+    abs_mm = np.array([o.abs_mm for o in after])
+    cd_mm = np.array([o.cd_mm for o in after])
+    return outs[first], after, gt, anchors, abs_mm, cd_mm
+
+
+def test_rope_is_tracked_on_the_rope_with_its_ends_in_the_grippers():
+    init, after, gt, anchors, abs_mm, cd_mm = _track("rope")
+    topo = init.topology
+    assert topo is not None and topo.kind == "1d" and topo.n_keypoints == 20
+    assert sorted(topo.anchor_kind.tolist()) == [LEAF, LEAF]  # a plain chain: two ends, no junction
+    assert set(init.grasp_idx.tolist()) == {0, 19}  # both ends held, keypoint 0 at the left gripper
+    assert np.sqrt(np.mean(gt**2)) < 3.0 and gt.max() < 6.0  # mm, keypoints on the rope's skin
+    assert np.nanmean(anchors) < 10.0  # mm, ends at the true ends
+    assert np.median(abs_mm) < 5.0 and np.median(cd_mm) < 8.0
+    moved = np.linalg.norm(after[-1].keypoints - after[0].keypoints, axis=1).max()
+    assert moved > 0.03  # the keypoints followed the swing (not frozen at the initialisation)
+
+
+def test_branched_rope_finds_its_junction_and_tracks_every_branch():
+    init, after, gt, anchors, abs_mm, cd_mm = _track("branched_rope")
+    topo = init.topology
+    assert topo is not None and topo.n_keypoints == 25
+    kinds = sorted(topo.anchor_kind.tolist())
+    assert kinds == [LEAF, LEAF, LEAF, JUNCTION]  # three ends and the junction
+    assert len(topo.chains) == 3
+    assert np.sqrt(np.mean(gt**2)) < 4.0 and gt.max() < 8.0
+    assert np.nanmean(anchors) < 15.0  # the free branch end and the junction included
+    assert np.median(abs_mm) < 8.0 and np.median(cd_mm) < 8.0
+
+
+CLOTH = {"length": 0.55}  # mock.yaml's 0.4 m cloth cannot span the grippers (0.5 m apart): held by two corners
+
+
+def test_cloth_initialises_a_grid_on_the_cloth_held_at_the_grippers():
+    seq, outs, first = _run("cloth", CLOTH)
+    init = outs[first]
+    topo = init.topology
+    assert topo is not None and topo.kind == "2d" and topo.grid_shape == (6, 6)
+    assert int((topo.anchor_kind == CORNER).sum()) == 4
+    assert (init.grasp_idx >= 0).all()  # both held corners found at the grippers
+    on = [i for i, o in enumerate(outs) if o.status in ("init", "tracking", "degraded")]
+    gt = np.array([gt_error_mm(outs[i].keypoints, seq.frames[i].gt) for i in on])
+    assert np.sqrt(np.mean(gt**2)) < 6.0  # mm to the true mid-surface, whatever the grid's quality
+
+
+@pytest.mark.xfail(strict=True, reason="known: the draped cloth's grid breaks its edge lengths (Abs > 15 mm) "
+                   "and the track is lost; see benchmarks/tracking.py")
+def test_cloth_is_never_lost():
+    _track("cloth", CLOTH)
