@@ -197,3 +197,17 @@ def test_composited_render_equals_a_full_ray_cast(rasterise):
     ok = out.mask & (out.depth > 0)
     assert ok.sum() > 0.8 * out.mask.sum()
     assert np.median(np.abs(out.depth[ok] * 1e-3 - z_ref[ok])) < 0.002
+
+
+def test_renderers_share_the_static_prerender_and_frames_are_writable():
+    K = CameraIntrinsics.from_fov(160, 120, 69.0)
+    T = mock_camera_pose().matrix()
+    a, b = SceneRenderer(K, T, seed=5), SceneRenderer(K, T, seed=5)
+    assert a._static_depth is b._static_depth  # built once
+    assert SceneRenderer(K, T, seed=6)._static_depth is not a._static_depth
+    mesh = tube_mesh(np.stack([np.linspace(0.3, 0.6, 20), np.zeros(20), np.full(20, 0.2)], axis=1), 0.01)
+    fa, fb = a.render([], mesh, frame_index=3), b.render([], mesh, frame_index=3)
+    assert np.array_equal(fa.depth, fb.depth) and np.array_equal(fa.color, fb.color)
+    assert fa.depth.flags.writeable and fa.color.flags.writeable and fa.depth_true.flags.writeable
+    fa.depth[:] = 0  # the shared pre-render is untouched
+    assert np.array_equal(b.render([], mesh, frame_index=3).depth, fb.depth)

@@ -502,7 +502,11 @@ class FakeCamera:
         return self._intrinsics
 
     def connect(self) -> None:
-        """Build the renderer (static scene, ray bundle, noise pools)."""
+        """Build the renderer (static scene pre-render, noise pools) and bring the simulation up to now.
+
+        The object is created and settled here rather than at the first read, so the first frame
+        costs no more than any other (the result is the same: the physics runs on a fixed grid).
+        """
         if self._renderer is None:
             c = self.config
             self._renderer = SceneRenderer(
@@ -516,6 +520,7 @@ class FakeCamera:
                 object_color=self.station.object_config.color,
             )
         self._last_index = None
+        self.station.advance_to(self.clock.now())
 
     def close(self) -> None:
         """Stop streaming (idempotent)."""

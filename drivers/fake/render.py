@@ -9,6 +9,7 @@ grazing angles and flying pixels. Everything per pixel is vectorised numpy.
 
 from __future__ import annotations
 
+import threading
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -34,6 +35,14 @@ MOCK_CAMERA_EYE = (1.35, 0.0, 0.75)
 MOCK_CAMERA_TARGET = (0.45, 0.0, 0.2)
 
 Mesh = tuple[np.ndarray, np.ndarray]  # vertices (V, 3) float64 m, triangles (F, 3) int32
+# Static pre-renders (SceneRenderer._prerender), shared by renderers with the same camera and scene.
+_PRERENDER_FIELDS = (
+    "_z_static", "_zp_static", "_inv_static", "_cos_static", "_pool_shift", "_colour_pool", "_depth_pool", "_p_fly",
+    "_static_color", "_static_depth",
+)
+_PRERENDER_CACHE_SIZE = 2
+_PRERENDERS: dict[tuple, dict[str, object]] = {}
+_PRERENDER_LOCK = threading.Lock()
 
 
 def look_at(eye: Sequence[float], target: Sequence[float], up: Sequence[float] = (0.0, 0.0, 1.0)) -> Pose:
@@ -264,8 +273,10 @@ class SceneRenderer:
         self._cullable: dict[tuple[int, int, int], np.ndarray] = {}  # arm topology -> closed_outward()
         K = intrinsics
         H, W = K.height, K.width
-        n_pix = H * W
-        R, t = self.T_world_cam[:3, :3], self.T_world_cam[:3, 3]
+        # Contiguous copies: numpy's matmul skips BLAS (100x slower) for strided operands.
+        self._R = np.ascontiguousarray(self.T_world_cam[:3, :3])  # world <- camera rotation
+        self._Rt = np.ascontiguousarray(self._R.T)
+        R = self._R
         light = np.array([0.35, 0.25, 1.0])
         self._light_cam = (R.T @ (light / np.linalg.norm(light))).astype(np.float64)  # camera frame
         # Padded pixel layout: (H + 2, W + 2) with a one-pixel ring, so 4-neighbours need no clamping.
@@ -285,15 +296,42 @@ class SceneRenderer:
         px = np.minimum(tx.reshape(-1, 1) * T_ + ox.reshape(1, -1), W - 1)
         self._tile_pixels = py * W + px  # (n_tiles, T*T) int64
 
+        # The static pre-render depends only on these: cameras reconnecting or rebuilt reuse it.
+        key = (intrinsics, self.T_world_cam.tobytes(), self.depth_noise, self.edge_dropout, self.flying_pixels,
+               int(clutter), self.seed, int(static_frames))
+        with _PRERENDER_LOCK:
+            cached = _PRERENDERS.pop(key, None)
+            if cached is None:
+                self._prerender(int(clutter), int(static_frames), d_cam)
+                cached = {name: getattr(self, name) for name in _PRERENDER_FIELDS}
+                for value in cached.values():
+                    if isinstance(value, np.ndarray):
+                        value.flags.writeable = False  # shared between renderers
+            _PRERENDERS[key] = cached  # most recently used last
+            while len(_PRERENDERS) > _PRERENDER_CACHE_SIZE:
+                _PRERENDERS.pop(next(iter(_PRERENDERS)))
+        self.__dict__.update(cached)
+
+    def _prerender(self, clutter: int, static_frames: int, d_cam: np.ndarray) -> None:
+        """Ray-cast the static scene once; its noise pools and ``static_frames`` noisy realisations.
+
+        d_cam: (H*W, 3) pixel ray directions in the camera frame, unit z.
+        """
+        K = self.intrinsics
+        H, W = K.height, K.width
+        n_pix = H * W
+        R, t = self._R, self.T_world_cam[:3, 3]
+        seed = self.seed
         # ---- static pre-render: exact depth, view angle, shaded colour.
         meshes, colours = static_scene(clutter, seed)
         v, f, src = merge_meshes(meshes)
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(*_tensors(v, f))
-        hit = scene.cast_rays(o3d.core.Tensor(self._rays(np.arange(n_pix))), nthreads=0)
+        hit = scene.cast_rays(o3d.core.Tensor(self._rays(np.arange(n_pix))), nthreads=self.nthreads)
         valid = hit["geometry_ids"].numpy() != INVALID_ID
         z = np.where(valid, hit["t_hit"].numpy(), 0.0).astype(np.float32)  # unit camera-z rays: t is z
-        normal = hit["primitive_normals"].numpy().astype(np.float64) @ R  # camera frame
+        # (N, 3) x (3, 3) products as einsum: right after open3d's threads BLAS may stall on 2 busy cores.
+        normal = np.einsum("ij,jk->ik", hit["primitive_normals"].numpy().astype(np.float64), R)  # camera frame
         prim = np.where(valid, hit["primitive_ids"].numpy().astype(np.int64), 0)
         cos_view = np.abs(np.einsum("ij,ij->i", normal, d_cam)) / self._ray_norm[self._interior]
         self._z_static = z  # (H*W,) float32 m, 0 = no hit
@@ -302,9 +340,10 @@ class SceneRenderer:
         self._inv_static = self._padded(np.where(valid, 1.0 / np.where(valid, z, 1.0).astype(np.float64), 0.0), 0.0)
         self._cos_static = self._padded(cos_view, 1.0).astype(np.float32)
         n_table_triangles = 12  # the first box of static_scene
+        d_world = np.einsum("ij,jk->ik", d_cam, self._Rt)
         with np.errstate(divide="ignore", invalid="ignore"):
-            s_plane = -t[2] / (d_cam @ R.T)[:, 2]
-        p = t + (d_cam @ R.T) * s_plane[:, None]
+            s_plane = -t[2] / d_world[:, 2]
+        p = t + d_world * s_plane[:, None]
         grain = 0.92 + 0.08 * np.sin(55.0 * p[:, 0] + 4.0 * np.sin(9.0 * p[:, 1])) * np.cos(3.0 * p[:, 1])
         grain = np.where(valid & (prim < n_table_triangles), np.nan_to_num(grain, nan=1.0), 1.0)
         albedo = np.asarray(colours, dtype=np.float64)[src][prim] * valid[:, None]
@@ -314,8 +353,8 @@ class SceneRenderer:
         # ---- noise pools (P + shift rows), read from a seeded random row offset < shift per frame.
         n_rows = len(self._ray_norm)
         self._pool_shift = n_rows // 4 + 1
-        pool_rng = np.random.default_rng([self.seed, 2**31 - 1])
-        self._colour_pool = pool_rng.normal(0.0, 2.0, (n_rows + self._pool_shift, 3)).astype(np.float32)
+        pool_rng = np.random.default_rng([seed, 2**31 - 1])
+        self._colour_pool = np.float32(2.0) * pool_rng.standard_normal((n_rows + self._pool_shift, 3), dtype=np.float32)
         self._depth_pool = np.concatenate(  # columns: N(0, 1), then 4 x U[0, 1)
             [
                 pool_rng.standard_normal((n_rows + self._pool_shift, 1), dtype=np.float32),
@@ -329,11 +368,13 @@ class SceneRenderer:
 
         # ---- static realisations: the full error model on every pixel, independent draws each.
         frames_c, frames_d = [], []
-        for k in range(max(1, int(static_frames))):
-            rng = np.random.default_rng([self.seed, 2**31 - 2, k])
-            draws = np.concatenate([rng.standard_normal((n_pix, 1)), rng.random((n_pix, 4))], axis=1)
-            depth = self._depth_model(self._zp_static, self._cos_static, self._interior, draws.astype(np.float32))
-            noise = rng.normal(0.0, 2.0, (n_pix, 3)).astype(np.float32)
+        for k in range(max(1, static_frames)):
+            rng = np.random.default_rng([seed, 2**31 - 2, k])
+            draws = np.empty((n_pix, 5), dtype=np.float32)
+            draws[:, 0] = rng.standard_normal(n_pix, dtype=np.float32)
+            draws[:, 1:] = rng.random((n_pix, 4), dtype=np.float32)
+            depth = self._depth_model(self._zp_static, self._cos_static, self._interior, draws)
+            noise = np.float32(2.0) * rng.standard_normal((n_pix, 3), dtype=np.float32)
             frames_c.append(np.clip(static_colour + noise, 0, 255).astype(np.uint8).reshape(H, W, 3))
             frames_d.append(depth.reshape(H, W))
         self._static_color = np.stack(frames_c)  # (K, H, W, 3) uint8
@@ -363,7 +404,7 @@ class SceneRenderer:
         y, x = np.divmod(pix, K.width)
         d_cam = np.stack([(x - K.cx) / K.fx, (y - K.cy) / K.fy, np.ones(len(pix))], axis=1)
         origin = np.broadcast_to(self.T_world_cam[:3, 3], (len(pix), 3))
-        return np.concatenate([origin, d_cam @ self.T_world_cam[:3, :3].T], axis=1).astype(np.float32)
+        return np.concatenate([origin, np.einsum("ij,jk->ik", d_cam, self._Rt)], axis=1).astype(np.float32)
 
     # ------------------------------------------------------------ per-pixel models
     def _depth_edges(self, zp: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -554,7 +595,7 @@ class SceneRenderer:
         if len(f):
             # ---- where the dynamic geometry is nearer than the static scene: pixels, 1/z, triangle.
             # Vertices rounded to float32 first: what open3d's BVH sees, so both paths agree.
-            pc = (v.astype(np.float32).astype(np.float64) - self.T_world_cam[:3, 3]) @ self.T_world_cam[:3, :3]
+            pc = (v.astype(np.float32).astype(np.float64) - self.T_world_cam[:3, 3]) @ self._R
             a = pc[f[:, 0]]
             n = np.cross(pc[f[:, 1]] - a, pc[f[:, 2]] - a)  # (F, 3) camera frame, |n| = 2 area
             na = np.einsum("ij,ij->i", n, a)
