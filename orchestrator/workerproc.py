@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -34,8 +35,17 @@ class WorkerProcess:
         return self.proc.returncode
 
 
+def _lower_priority() -> None:
+    """Run the worker below the capture loop: on a small machine capture must never starve."""
+    os.nice(10)
+
+
 def start_worker(config: Config, out_dir: Path) -> WorkerProcess:
-    """Launch the worker with the session's config (as JSON), connected to its listen endpoints."""
+    """Launch the worker with the session's config (as JSON), connected to its listen endpoints.
+
+    The worker runs at a lower CPU priority (nice 10): it takes the newest frame whenever it is
+    free, so it adapts its rate, while the capture loop and the recorder must keep 30 Hz.
+    """
     out_dir.mkdir(parents=True, exist_ok=True)
     cfg_path = out_dir / "worker_config.json"
     cfg_path.write_text(json.dumps(config.model_dump(mode="json"), indent=2))
@@ -44,5 +54,7 @@ def start_worker(config: Config, out_dir: Path) -> WorkerProcess:
     for e in local_endpoints(config.bus.listen):
         cmd += ["--connect", e]
     with open(log_path, "ab") as logf:
-        proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+        proc = subprocess.Popen(
+            cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, preexec_fn=_lower_priority
+        )
     return WorkerProcess(proc, log_path)
