@@ -76,7 +76,7 @@ class LivePipeline:
         kind: str | None = None,
         min_init_points: int = 150,
         reference_gap: int = 10,
-        init_stable_frames: int = 10,
+        init_stable_frames: int = 6,
         init_max_growth: float = 0.05,
         init_grasp_patience: int = 90,
     ) -> None:
