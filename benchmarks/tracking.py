@@ -287,7 +287,8 @@ def init_consistency(
     For each seed the frames the pipeline would use are rendered: D0 at rest, the three recent
     references (every ``reference_gap`` frames before D1) and D1 at ``at_s`` s into the motion;
     the pipeline's initialisation step (difference segmentation, then ``Tracker.initialise`` with
-    the TCPs and grasp flags) runs on them. Spread per keypoint over the seeds: RMS distance to
+    the TCPs and grasp flags) runs on them; an initialisation leaving a closed gripper without a
+    keypoint (which the pipeline rejects) counts as a failure. Spread per keypoint over the seeds: RMS distance to
     the mean position ("std") and the largest distance ("maxdev"); the maximum over keypoints.
     """
     inits, failures = [], 0
@@ -307,9 +308,13 @@ def init_consistency(
         )
         try:
             ini, _ = pipe.tracker.initialise(seg.points, tcp=tcp, kind=pipe.kind, gripper_closed=closed)
-            inits.append(ini.keypoints)
         except InitialisationError:
             failures += 1
+            continue
+        if (closed & (pipe.tracker.grasp_idx < 0)).any():  # the pipeline would wait for a better frame
+            failures += 1
+            continue
+        inits.append(ini.keypoints)
     res: dict[str, Any] = {"seeds": seeds, "init_failures": failures, "init_check_t_s": at_s}
     sizes = {len(x) for x in inits}
     if len(inits) < 2 or len(sizes) != 1:
