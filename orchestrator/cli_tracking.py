@@ -76,16 +76,18 @@ def _arm_geometry(seq: Any, i: int, arms: Any) -> tuple[Any, Any, Any, Any]:
     closed = None
     if seq.grasped_left is not None and seq.grasped_right is not None:
         closed = np.array([bool(seq.grasped_left[i]), bool(seq.grasped_right[i])])
+    widths = [getattr(seq, f"gripper_width_{a}", None) for a in ("left", "right")]
+    width = [float(w[i]) if w is not None and np.isfinite(w[i]) else 0.08 for w in widths]
     if arms is not None and seq.q_left is not None and seq.q_right is not None:
         state = {
-            "left": {"q": seq.q_left[i], "grasped": bool(closed[0]) if closed is not None else False},
-            "right": {"q": seq.q_right[i], "grasped": bool(closed[1]) if closed is not None else False},
+            a: {"q": q[i], "gripper_width": width[j], "grasped": bool(closed[j]) if closed is not None else False}
+            for j, (a, q) in enumerate((("left", seq.q_left), ("right", seq.q_right)))
         }
         V, F, tcp, c = arms.from_state(state)
         return V, F, tcp, (c if closed is not None else None)
     if seq.tcp_left is not None and seq.tcp_right is not None:
-        vl, fl = hand_mesh(seq.tcp_left[i])
-        vr, fr = hand_mesh(seq.tcp_right[i])
+        vl, fl = hand_mesh(seq.tcp_left[i], width[0])
+        vr, fr = hand_mesh(seq.tcp_right[i], width[1])
         tcp = np.stack([seq.tcp_left[i][:3, 3], seq.tcp_right[i][:3, 3]])
         return np.concatenate([vl, vr]), np.concatenate([fl, fr + len(vl)]), tcp, closed
     return None, None, None, None

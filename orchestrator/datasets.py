@@ -79,7 +79,8 @@ class Sequence:
     tcp_left / tcp_right: (T, 4, 4) TCP poses in the world, or None.
     T_world_base: {"left", "right"} -> (4, 4) robot base poses in the world, or None.
     ground_truth: T GroundTruth (or None per frame) in mock-mode episodes, else None.
-    stamps: (T,) s host stamps; frame_numbers: (T,) int64; grasped_left / grasped_right: (T,) bool or None.
+    stamps: (T,) s host stamps; frame_numbers: (T,) int64; grasped_left / grasped_right: (T,) bool or None;
+    gripper_width_left / gripper_width_right: (T,) m finger opening or None.
     """
 
     frames: Iterable[RGBDFrame]
@@ -99,6 +100,8 @@ class Sequence:
     frame_numbers: np.ndarray | None = None
     grasped_left: np.ndarray | None = None
     grasped_right: np.ndarray | None = None
+    gripper_width_left: np.ndarray | None = None
+    gripper_width_right: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.frames)  # type: ignore[arg-type]
@@ -227,6 +230,7 @@ class _EpisodeIndex:
     q: dict[str, np.ndarray]  # arm -> (S, 7)
     u: np.ndarray  # (S, 12)
     grasped: dict[str, np.ndarray]  # arm -> (S,) bool
+    gripper_width: dict[str, np.ndarray]  # arm -> (S,) m
     ground_truth: list[GroundTruth | None]
     incomplete_frames: int
 
@@ -375,13 +379,15 @@ def _index_episode(path: Path, camera_id: str | None) -> _EpisodeIndex:
          for a in ("left", "right")}
     grasped = {a: np.array([bool(s.get(a, {}).get("grasped", False)) for s in states], dtype=bool)
                for a in ("left", "right")}
+    gripper_width = {a: np.array([float(s.get(a, {}).get("gripper_width", np.nan)) for s in states], dtype=np.float64)
+                     for a in ("left", "right")}
     u = np.array([s.get("u") or [np.nan] * 12 for s in states], dtype=np.float64).reshape(S, 12)
     gt_list = [(_gt_from_json(gts[int(n)]) if int(n) in gts else None) for n in frame_numbers]
     return _EpisodeIndex(
         path=path, topics=(f"{cam}/color", f"{cam}/depth"), times=times, frame_numbers=frame_numbers,
         device_stamps=device, host_stamps=host, K=K, width=width, height=height, T_world_cam=T_world_cam,
         T_world_base=T_world_base, metadata=metadata, state_stamps=state_stamps, q=q, u=u, grasped=grasped,
-        ground_truth=gt_list, incomplete_frames=incomplete,
+        gripper_width=gripper_width, ground_truth=gt_list, incomplete_frames=incomplete,
     )
 
 
@@ -509,6 +515,9 @@ def read_episodes(path: str | Path, camera_id: str | None = None) -> Sequence:
         for arm in ("left", "right"):
             out[f"q_{arm}"] = np.concatenate([per_frame(ep, ep.q[arm], np.nan) for ep in episodes])
             out[f"grasped_{arm}"] = np.concatenate([per_frame(ep, ep.grasped[arm], False) for ep in episodes])
+            out[f"gripper_width_{arm}"] = np.concatenate(
+                [per_frame(ep, ep.gripper_width[arm], np.nan) for ep in episodes]
+            )
         u = np.concatenate([per_frame(ep, ep.u, np.nan) for ep in episodes])
         out["tcp_left"], out["tcp_right"] = input_to_matrix(u[:, :6]), input_to_matrix(u[:, 6:])
     gt = [g for ep in episodes for g in ep.ground_truth]
