@@ -38,6 +38,9 @@ _SETTLED_CACHE_SIZE = 8  # settled start states kept (SimObject.reset)
 _SETTLED: dict[tuple, dict[str, object]] = {}
 _SETTLED_LOCK = threading.Lock()
 DEFAULT_KEYPOINTS = {"rope": 20, "branched_rope": 25, "cloth": 36}
+# Stretch iterations per substep: a single chain converges in very few (exact tridiagonal
+# projection); the branched rope's trunk and branch couple only through Gauss-Seidel sweeps.
+DEFAULT_ITERATIONS = {"rope": 3, "branched_rope": 4, "cloth": 3}
 
 
 @dataclass(frozen=True)
@@ -303,14 +306,14 @@ class SimObject:
         config: SimObjectConfig,
         n_keypoints: int | None = None,
         *,
-        iterations: int = 4,
+        iterations: int | None = None,
         damping: float = 0.8,
     ) -> None:
         self.config = config
         self.kind = config.kind
         self.category = CATEGORY[config.kind]
         self.radius = float(config.radius)
-        self.iterations = int(iterations)
+        self.iterations = DEFAULT_ITERATIONS[config.kind] if iterations is None else int(iterations)
         self.damping = float(damping)  # 1/s, velocity decay rate
         n_kp = DEFAULT_KEYPOINTS[config.kind] if n_keypoints is None else int(n_keypoints)
         self.topology = (_build_cloth if config.kind == "cloth" else _build_chain_object)(config, n_kp)
@@ -377,30 +380,37 @@ class SimObject:
             (np.concatenate([share_i, -share_j]), (np.concatenate([e[:, 0], e[:, 1]]), np.tile(np.arange(n_b), 2))),
             shape=(self.n_particles, n_b),
         )
-        # Stretch chains: per set, the inverse masses at both ends of each edge and the couplings.
+        # Stretch chains, per set: the edges, the diagonal and couplings of J W J^T, and for every
+        # particle the edge it starts / ends (C: none) to apply W J^T lam as one dense update.
         self._chains = []
+        n_p = self.n_particles
         for edges, linked, rest in self.topology.chain_sets:
             i, j = edges[:, 0], edges[:, 1]
             couple = np.where(linked, -w[j[:-1]], 0.0)  # (J W J^T)_{k,k+1} = couple_k * n_k . n_k+1
-            self._chains.append((i, j, rest, w[i, None], w[j, None], w[i] + w[j] + 1e-9, couple))
+            starts, ends = np.full(n_p, len(edges)), np.full(n_p, len(edges))
+            starts[i], ends[j] = np.arange(len(edges)), np.arange(len(edges))
+            self._chains.append((i, j, rest, w[i] + w[j] + 1e-9, couple, starts, ends, w[:, None]))
 
     def _long_range(self, x: np.ndarray) -> np.ndarray:
         """Long-range attachments: pull every free particle back within its rest geodesic distance of each held one.
 
-        x: (P, 3), updated in place (held particles in order, as a sequential projection) and returned.
+        x: (P, 3); the held particles in order, as sequential projections; returns the new positions.
         """
         held, limits, free_limits = self._lra  # (H,), (H, P) m, (H, P) m (inf for pinned particles)
         if not len(held):
             return x
-        d = x[None, :, :] - x[held][:, None, :]  # (H, P, 3)
-        if not (np.einsum("hpk,hpk->hp", d, d) > free_limits * free_limits).any():
-            return x  # the common case: nothing too far from any held particle
+        d = x[None, :, :] - np.take(x, held, axis=0)[:, None, :]  # (H, P, 3)
+        dist2 = np.einsum("hpk,hpk->hp", d, d)
+        if not (dist2 > free_limits * free_limits).any():
+            return x  # nothing too far from any held particle
         for h, p in enumerate(held):
-            dp = x - x[p]
-            dist = np.sqrt(np.einsum("ij,ij->i", dp, dp))
+            if h:  # the earlier projections moved particles: distances to this one afresh
+                d[h] = x - x[p]
+                dist2[h] = np.einsum("ij,ij->i", d[h], d[h])
+            dist = np.sqrt(dist2[h])
             over = dist > free_limits[h]
-            if over.any():
-                x[over] -= dp[over] * (1.0 - limits[h, over] / dist[over])[:, None]
+            pull = np.where(over, 1.0 - limits[h] / np.where(over, dist, 1.0), 0.0)  # 0 where within reach
+            x = x - d[h] * pull[:, None]
         return x
 
     def _solve_soft(self, x: np.ndarray) -> np.ndarray:
@@ -415,17 +425,16 @@ class SimObject:
 
         For the chain set's constraints C_k = |x_j - x_i| - rest_k with unit directions n_k, solves
         (J W J^T) lam = -C (tridiagonal: consecutive constraints of a chain share one particle) and
-        moves x by W J^T lam. x: (P, 3), updated in place and returned.
+        moves x by W J^T lam. x: (P, 3); returns the new positions.
         """
-        for i, j, rest, wi, wj, diag, couple in self._chains:
+        for i, j, rest, diag, couple, starts, ends, w in self._chains:
             d = np.take(x, j, axis=0) - np.take(x, i, axis=0)
             length = np.maximum(np.sqrt(np.einsum("ij,ij->i", d, d)), 1e-12)
             n = d / length[:, None]
             off = couple * np.einsum("ij,ij->i", n[:-1], n[1:])
             lam = dptsv(diag, off, rest - length)[2]
-            f = n * lam[:, None]
-            x[i] -= wi * f
-            x[j] += wj * f
+            f = np.concatenate([n * lam[:, None], np.zeros((1, 3))])  # (C + 1, 3), last row: no edge
+            x = x + w * (np.take(f, ends, axis=0) - np.take(f, starts, axis=0))
         return x
 
     def reset(self, tcp_poses: Sequence[tuple[str, np.ndarray]], settle_time: float = 1.5) -> None:
