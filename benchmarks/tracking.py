@@ -55,7 +55,6 @@ from tracking.init import InitialisationError  # noqa: E402
 from tracking.metrics import distance_to_polyline, sequence_summary  # noqa: E402
 from tracking.params import TrackingParams  # noqa: E402
 from tracking.pipeline import LivePipeline, PipelineOutput  # noqa: E402
-from tracking.segmentation import segment_by_difference  # noqa: E402
 from tracking.worker import KIND, ArmModel, tracking_params  # noqa: E402
 
 OBJECTS = ("rope", "branched_rope", "cloth")
@@ -303,9 +302,7 @@ def init_consistency(
         pipe = LivePipeline(params_for(cfg, obj), seq.K, seq.T_world_cam, KIND.get(obj.category))
         V, F, tcp, closed = ArmModel(seq.bases).from_state(seq.frames[-1].state)
         d = [pipe.decimate(f.depth.astype(np.float32) * np.float32(1e-3)) for f in seq.frames]
-        seg = segment_by_difference(
-            np.stack(d[:-1]), d[-1], pipe.K_seg, seq.T_world_cam, pipe.seg_params, pipe.arm_mask(d[-1], V, F)
-        )
+        seg = pipe.segment_initial(np.stack(d[:-1]), d[-1], pipe.arm_mask(d[-1], V, F))
         try:
             ini, _ = pipe.tracker.initialise(seg.points, tcp=tcp, kind=pipe.kind, gripper_closed=closed)
         except InitialisationError:

@@ -27,6 +27,8 @@ class TrackingParams:
       min_cluster_points: clusters smaller than this (voxels) are noise.
       cluster_keep_fraction, cluster_keep_gap_m: at initialisation also keep clusters at least this
         fraction of the largest and within this gap of it (an object split by a gripper), m.
+      grow_step_m: the initial (difference) segmentation grows over changed pixels reachable from
+        the object through depth steps of at most this between neighbouring pixels (0: no growth), m.
       track_gate_m: in tracking, a cluster is kept if some point lies within this of the previous keypoints, m.
       background_object_gap_m: a farther reading is absorbed into the background only if its 3D
         point lies more than this from the tracked object (last cloud, keypoint edges): else it is
@@ -83,6 +85,7 @@ class TrackingParams:
     min_cluster_points: int = 10
     cluster_keep_fraction: float = 0.05
     cluster_keep_gap_m: float = 0.08
+    grow_step_m: float = 0.02
     track_gate_m: float = 0.05
     background_object_gap_m: float = 0.015
 

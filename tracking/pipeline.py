@@ -16,10 +16,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from tracking.classify import classify_object
 from tracking.geometry import decimated_intrinsics, decimation_stride, edge_samples
 from tracking.init import InitialisationError, Topology
 from tracking.params import TrackingParams
 from tracking.segmentation import (
+    Segmentation,
     background_from_depths,
     behind_near_object,
     render_arm_mask,
@@ -58,6 +60,22 @@ class PipelineOutput:
 
 
 _EMPTY = np.zeros((0, 3))
+
+
+def object_samples(X: np.ndarray, topology: Topology, n: int = 6) -> np.ndarray:
+    """Points (M, 3) m densely covering the tracked object: n samples along each edge of keypoints
+    X (N, 3) m, and for a 2D grid n x n bilinear samples of each cell (the cloth between its edges)."""
+    pts = edge_samples(X, topology.edges, n)
+    if topology.grid_shape is None:
+        return pts
+    R, C = topology.grid_shape
+    G = X.reshape(R, C, 3)
+    t = np.linspace(0.0, 1.0, max(2, n))
+    u, v = t[None, :, None], t[:, None, None]
+    a, b = G[:-1, :-1][:, :, None, None], G[:-1, 1:][:, :, None, None]
+    c, d = G[1:, :-1][:, :, None, None], G[1:, 1:][:, :, None, None]
+    cells = (1 - v) * ((1 - u) * a + u * b) + v * ((1 - u) * c + u * d)  # (R-1, C-1, n, n, 3)
+    return np.concatenate([pts, cells.reshape(-1, 3)])
 
 
 class LivePipeline:
@@ -175,6 +193,22 @@ class LivePipeline:
         self._timings["total"] = 1e3 * (time.perf_counter() - t0)
         return replace(out, timings_ms=self._timings)
 
+    def segment_initial(self, refs: np.ndarray, depth: np.ndarray, arm: np.ndarray | None) -> Segmentation:
+        """Difference segmentation of a decimated depth (h, w) m against references (R, h, w) m.
+
+        A 2D object (``kind`` "2d", or classified so from its "appeared" cloud when unknown) is grown
+        over the changed pixels depth-continuous with it (``segment_by_difference(grow=True)``): a
+        cloth pulled back lies behind its old positions and differencing alone misses most of it.
+        """
+        p = self.seg_params
+        grow = self.kind == "2d"
+        if self.kind is None:
+            seg = segment_by_difference(refs, depth, self.K_seg, self.T, p, arm)
+            if len(seg.points) < self.params.min_object_points or classify_object(seg.points, p).kind != "2d":
+                return seg
+            grow = True
+        return segment_by_difference(refs, depth, self.K_seg, self.T, p, arm, grow=grow)
+
     # ---------------------------------------------------------------- internals
     def _empty(self, status: str, n_points: int = 0, note: str = "") -> PipelineOutput:
         nan = float("nan")
@@ -202,7 +236,7 @@ class LivePipeline:
     ) -> PipelineOutput:
         refs = self._references()
         t0 = time.perf_counter()
-        seg = segment_by_difference(refs, depth, self.K_seg, self.T, self.seg_params, arm)
+        seg = self.segment_initial(refs, depth, arm)
         t1 = time.perf_counter()
         self._timings["segment"] = 1e3 * (t1 - t0)
         self._remember(depth)
@@ -238,7 +272,7 @@ class LivePipeline:
         topo, X = self.tracker.topology, self.tracker.keypoints
         assert topo is not None and X is not None
         behind = behind_near_object(
-            depth, self.background, self.seg_params, edge_samples(X, topo.edges, 6), self.K_seg, self.T, arm
+            depth, self.background, self.seg_params, object_samples(X, topo), self.K_seg, self.T, arm
         )
         seg = segment_against_background(
             depth, self.background, self.K_seg, self.T, self.seg_params, arm, X, behind

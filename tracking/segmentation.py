@@ -16,7 +16,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from tracking.geometry import depth_to_points
+from tracking.geometry import depth_to_points, project_points
 from tracking.params import TrackingParams
 
 
@@ -236,6 +236,31 @@ def difference_masks(
     return appeared, vanished
 
 
+def grow_depth_region(depth: np.ndarray, seeds: np.ndarray, candidate: np.ndarray, step_m: float) -> np.ndarray:
+    """Pixels of ``candidate`` (H, W) bool connected to ``seeds`` (H, W) bool through a depth-continuous surface.
+
+    depth: (H, W) float m. Two 4-neighbours are continuous when their depths differ by at most
+    ``step_m`` m; a pixel with a neighbour nearer than that (the far side of an occluding edge) is
+    cut, so a surface never connects to what lies behind its outline. Connected components of the
+    remaining candidates (4-connectivity) touching a seed are returned, (H, W) bool.
+    """
+    z = np.where(depth > 0, depth, np.float32(1e3)).astype(np.float32)  # missing: far, never continuous
+    far = np.zeros(depth.shape, bool)
+    step = np.float32(step_m)
+    dv = z[1:, :] - z[:-1, :]  # > 0: the lower pixel is farther
+    dh = z[:, 1:] - z[:, :-1]
+    far[1:, :] |= dv > step
+    far[:-1, :] |= -dv > step
+    far[:, 1:] |= dh > step
+    far[:, :-1] |= -dh > step
+    cand = candidate & ~far & (depth > 0)
+    n, lab = cv2.connectedComponents(cand.astype(np.uint8), connectivity=4)
+    keep = np.zeros(n, bool)
+    keep[lab[seeds & cand]] = True
+    keep[0] = False
+    return keep[lab]
+
+
 def segment_by_difference(
     depth_ref: np.ndarray,
     depth1: np.ndarray,
@@ -243,19 +268,41 @@ def segment_by_difference(
     T_world_cam: np.ndarray,
     params: TrackingParams,
     arm_mask: np.ndarray | None = None,
+    grow: bool = False,
 ) -> Segmentation:
     """Initial segmentation: the object in depth1 (H, W) float m against reference depth(s) m.
 
     depth_ref: (H, W) reference D0, or (R, H, W) several references with the object elsewhere (e.g.
-    D0 and D2 around D1): a pixel counts if it is in front of any of them, so the object is only
-    missed where it overlaps itself in every reference. arm_mask: optional (H, W) bool arm pixels of
-    frame 1 (``render_arm_mask``). Keeps the largest DBSCAN cluster (plus comparable clusters
-    split from it by a gripper).
+    D0 and D2 around D1): a pixel counts if it is in front of any of them. arm_mask: optional (H, W)
+    bool arm pixels of frame 1 (``render_arm_mask``). Keeps the largest DBSCAN cluster (plus
+    comparable clusters split from it by a gripper).
+
+    grow (with ``params.grow_step_m`` > 0): an object moving away from the camera lies behind the
+    references where it overlaps its old positions (a cloth pulled back: most of it), so the object
+    is grown from its "appeared" pixels over the changed pixels (in front of or behind some
+    reference) reachable through a depth-continuous surface (``grow_depth_region``); revealed
+    background behind the object's outline is cut off by the depth step there. An object resting
+    on a surface would leak into the surface revealed where it stood: growth suits an object
+    held in the air (a cloth lifted by its corners), not a rope on a table.
     """
-    appeared, _ = difference_masks(depth_ref, depth1, params)
+    appeared, vanished = difference_masks(depth_ref, depth1, params)
     if arm_mask is not None:
         appeared &= ~arm_mask
-    return _cluster(depth1, appeared, K, T_world_cam, params, None)
+    seg = _cluster(depth1, appeared, K, T_world_cam, params, None)
+    if not grow or params.grow_step_m <= 0 or len(seg.points) == 0:
+        return seg
+    uv, _ = project_points(seg.points, K, T_world_cam)
+    rc = np.rint(uv[:, ::-1]).astype(np.int64)
+    H, W = depth1.shape
+    ok = (rc[:, 0] >= 0) & (rc[:, 0] < H) & (rc[:, 1] >= 0) & (rc[:, 1] < W)
+    seeds = np.zeros((H, W), bool)
+    seeds[rc[ok, 0], rc[ok, 1]] = True
+    seeds &= appeared
+    candidate = appeared | vanished
+    if arm_mask is not None:
+        candidate &= ~arm_mask
+    grown = grow_depth_region(depth1, seeds, candidate, params.grow_step_m)
+    return _cluster(depth1, grown | (appeared & seeds), K, T_world_cam, params, None)
 
 
 def background_from_depths(depths: np.ndarray) -> np.ndarray:
