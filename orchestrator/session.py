@@ -420,6 +420,7 @@ class Session:
         episode_frames = 0
         base_meta = self._base_metadata(item, station, motion)
         base_meta["start_waypoint"] = resume.waypoint
+        self._last_frame_number = None  # frames the camera made between runs were not meant to be recorded
         self._run_info = {
             "object": item.object.name, "category": item.object.category, "program": item.program,
             "speed": item.speed, "run_index": item.index, "n_keypoints": item.object.n_keypoints,

@@ -42,11 +42,13 @@ class FrameMessage:
     run: dict[str, Any]  # what is being recorded: object, category, program, speed, run_index
 
 
-def _gt_to_json(gt: GroundTruth) -> dict[str, Any]:
+def _gt_to_json(gt: GroundTruth, max_centreline: int = 400) -> dict[str, Any]:
+    """Ground truth as JSON; the dense centreline / mid-surface is thinned to ``max_centreline`` samples."""
+    step = max(1, int(np.ceil(len(gt.centreline) / max_centreline)))
     return {
         "keypoints": gt.keypoints.tolist(),
         "edges": gt.edges.tolist(),
-        "centreline": np.round(gt.centreline, 5).tolist(),
+        "centreline": np.round(gt.centreline[::step], 5).tolist(),
         "radius": gt.radius,
         "anchors": gt.anchors.tolist(),
         "category": gt.category,

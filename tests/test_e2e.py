@@ -86,10 +86,10 @@ def test_cli_demo_sim_time(tmp_path: Path, port: int) -> None:
 
 
 def test_demo_with_tracking_worker_records_keypoints(tmp_path: Path, port: int) -> None:
-    """The demo starts the zenoh tracking worker; its live keypoints end up in the episodes."""
+    """The demo (real time, as a user runs it) starts the tracking worker; its keypoints land in the episodes."""
     out = tmp_path / "demo"
     proc = subprocess.run(
-        [sys.executable, "-m", "orchestrator.cli", "demo", "--sim-time", "--seconds", "10", "--out", str(out),
+        [sys.executable, "-m", "orchestrator.cli", "demo", "--seconds", "10", "--out", str(out),
          "--port", str(port), "--object", "rope"],
         capture_output=True, text=True, timeout=300,
     )
