@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import open3d as o3d
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from tracking.geometry import depth_to_points, project_points
@@ -138,20 +140,51 @@ def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
 
 
 def dbscan_labels(points: np.ndarray, eps_m: float, min_points: int) -> np.ndarray:
-    """points: (N, 3) float64, m -> (N,) int64 DBSCAN labels (open3d), -1 = noise."""
-    if len(points) == 0:
+    """points: (N, 3) float64, m -> (N,) int64 DBSCAN labels 0..k-1, -1 = noise.
+
+    A point is core when at least ``min_points`` points (itself included) lie within ``eps_m``;
+    clusters are the connected components of core points linked within eps_m, and a non-core
+    point within eps_m of a core point joins (one of) its cluster(s). Vectorised: one KD-tree pair
+    query and a sparse connected-components pass (open3d's DBSCAN costs ~3x more here).
+    """
+    n = len(points)
+    if n == 0:
         return np.zeros(0, np.int64)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points, np.float64)))
-    return np.asarray(pcd.cluster_dbscan(eps=eps_m, min_points=min_points, print_progress=False), np.int64)
+    pairs = cKDTree(points).query_pairs(eps_m, output_type="ndarray")
+    core = np.bincount(pairs.ravel(), minlength=n) + 1 >= min_points
+    cc = pairs[core[pairs[:, 0]] & core[pairs[:, 1]]]
+    graph = coo_matrix((np.ones(len(cc), np.int8), (cc[:, 0], cc[:, 1])), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    lab = np.where(core, comp, -1).astype(np.int64)
+    border = pairs[core[pairs[:, 0]] != core[pairs[:, 1]]]
+    src = np.where(core[border[:, 0]], border[:, 0], border[:, 1])
+    dst = np.where(core[border[:, 0]], border[:, 1], border[:, 0])
+    lab[dst] = lab[src]
+    ok = lab >= 0
+    lab[ok] = np.unique(lab[ok], return_inverse=True)[1]
+    return lab
+
+
+def voxel_groups(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Group points (N, 3) m by voxel of size voxel_m -> (centroids (M, 3) m, voxel of each point (N,) int64)."""
+    keys = np.floor(points / voxel_m).astype(np.int64)
+    keys -= keys.min(axis=0)
+    dims = keys.max(axis=0) + 1
+    flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+    _, inv = np.unique(flat, return_inverse=True)
+    m = int(inv.max()) + 1
+    cnt = np.bincount(inv, minlength=m)
+    cen = np.stack([np.bincount(inv, points[:, k], m) for k in range(3)], axis=1) / cnt[:, None]
+    return cen, inv
 
 
 def coarse_dbscan_labels(points: np.ndarray, params: TrackingParams) -> np.ndarray:
-    """DBSCAN labels (N,) int64 of points (N, 3) m computed on a ``dbscan_voxel_m`` grid, spread by nearest voxel."""
+    """DBSCAN labels (N,) int64 of points (N, 3) m computed on the centroids of a ``dbscan_voxel_m``
+    grid, each point taking its voxel's label."""
     if len(points) == 0 or params.dbscan_voxel_m <= params.voxel_m:
         return dbscan_labels(points, params.dbscan_eps_m, params.dbscan_min_points)
-    coarse = voxel_downsample(points, params.dbscan_voxel_m)
-    lab = dbscan_labels(coarse, params.dbscan_eps_m, params.dbscan_min_points)
-    return lab[cKDTree(coarse).query(points)[1]]
+    cen, inv = voxel_groups(points, params.dbscan_voxel_m)
+    return dbscan_labels(cen, params.dbscan_eps_m, params.dbscan_min_points)[inv]
 
 
 def select_largest_clusters(points: np.ndarray, labels: np.ndarray, params: TrackingParams) -> np.ndarray:
