@@ -197,6 +197,8 @@ def contour_3d(
     c = max(cs, key=cv2.contourArea).reshape(-1, 2).astype(np.float64)
     if len(c) < 8:
         return None
+    if cv2.contourArea(c.astype(np.float32), oriented=True) < 0:
+        c = c[::-1]  # clockwise on screen (top-left -> top-right -> ...): side 0 is the top
     box = cv2.boxPoints(cv2.minAreaRect(c.astype(np.float32))).astype(np.float64)
     held = np.zeros((0, 3)) if held is None else np.asarray(held, np.float64).reshape(-1, 3)
     if len(held):

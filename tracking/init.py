@@ -15,6 +15,7 @@ from tracking.anchors import (
 )
 from tracking.classify import ObjectClass, classify_object
 from tracking.geometry import project_points
+from tracking.metrics import edge_lengths
 from tracking.params import TrackingParams
 from tracking.skeleton import LEAF
 from tracking.solver import edge_colouring, solve_keypoints
@@ -263,11 +264,14 @@ def initialise_2d(
 ) -> Initialisation:
     """Initialise a rectangular 2D object (cloth) from its segmented cloud (N, 3) float64 m world.
 
-    Contour -> four corners -> sides; a rows x cols Coons (bilinear) grid bounded by the sides,
-    lifted by the nearest cloud point; boundary nodes are anchors; rest lengths from the measured
-    side lengths (mean of opposite sides / edge count). held: (H, 3) m TCPs of closed grippers:
-    they pick the held corners of the contour, and a grid corner within ``grasp_gate_m`` of one
-    is placed at it.
+    Contour -> four corners -> sides; a rows x cols Coons (bilinear) grid bounded by the sides
+    (each resampled evenly by 3D arc length), lifted by the nearest cloud point; boundary nodes are
+    anchors. Rest length of each edge = its length in that lifted grid: a draped cloth is folded
+    and wrinkled between its sides, so one spacing per direction from the side lengths cannot fit
+    it (its edges then disagree by ~10 mm RMS from the start; measured across the cloud surface
+    instead of as chords, the rest lengths exceed what chords between keypoints on a folded
+    surface can reach). held: (H, 3) m TCPs of closed grippers: they pick the held corners of the
+    contour, and a grid corner within ``grasp_gate_m`` of one is placed at it.
     """
     ct = contour_3d(cloud, K, T_world_cam, params, held)
     if ct is None:
@@ -281,9 +285,8 @@ def initialise_2d(
         r, k = linear_sum_assignment(cost)
         ok = cost[r, k] <= params.grasp_gate_m
         X0[corners[k[ok]]] = hp[r[ok]]
-    dx = 0.5 * (ct.lengths[0] + ct.lengths[2]) / (C - 1)
-    dy = 0.5 * (ct.lengths[1] + ct.lengths[3]) / (R - 1)
-    E, rest = grid_topology(R, C, dx, dy)
+    E, _ = grid_topology(R, C, 0.0, 0.0)
+    rest = edge_lengths(X0, E)
     bi, bk = boundary_indices(R, C)
     chains = [np.arange(r * C, (r + 1) * C) for r in range(R)]
     topo = Topology("2d", E, rest, bi, bk, chains, (R, C), edge_colouring(E, R * C))

@@ -58,6 +58,8 @@ class TrackingParams:
     Tracking (Algorithm 2)
       anchor_gate_m: Hungarian matches of re-detected to predicted anchors farther than this are rejected, m.
       anchor_regate_m: leftover anchors and detections are matched again within this wider gate, m.
+      anchor_edge_tol: two re-detected anchors joined by an edge whose length differs from its rest
+        length by more than this fraction of it are both left free this frame (0: off).
       grasp_gate_m: a TCP farther than this from every keypoint holds nothing, m.
       causal_window, symmetric_window: moving-average windows, frames.
       min_object_points: fewer segmented points than this is a bad frame.
@@ -116,6 +118,7 @@ class TrackingParams:
 
     anchor_gate_m: float = 0.05
     anchor_regate_m: float = 0.15
+    anchor_edge_tol: float = 0.15
     grasp_gate_m: float = 0.05
     causal_window: int = 3
     symmetric_window: int = 5

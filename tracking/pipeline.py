@@ -259,7 +259,9 @@ class LivePipeline:
                 self.tracker.reset()
                 return self._empty("waiting", n, "waiting: the segmented object does not reach every closed gripper")
         bg = background_from_depths(refs)
-        self.background = update_background(bg, depth, self.seg_params, arm)
+        # the object's pixels behind the references (moving away) are object, not revealed background
+        keep = behind_near_object(depth, bg, self.seg_params, seg.points, self.K_seg, self.T, arm)
+        self.background = update_background(bg, depth, self.seg_params, arm, keep=keep)
         self._sizes.clear()
         self._grasp_rejections = 0
         return self._output("init", res, seg.points)

@@ -114,6 +114,23 @@ def update_grasp_indices(
     return out
 
 
+def consistent_anchors(
+    topology: Topology, idx: np.ndarray, pos: np.ndarray, n_keypoints: int, tol: float
+) -> np.ndarray:
+    """Which re-detected anchors (A,) bool agree with the topology: anchors of keypoints idx (A,) at
+    pos (A, 3) m; an edge of the topology joining two of them whose length differs from its rest
+    length by more than ``tol`` times that rest length condemns both ends (a contour side shortened
+    by a fold, a detection matched to the wrong anchor); the others are kept."""
+    at = np.full((n_keypoints, 3), np.nan)
+    at[idx] = pos
+    e = topology.edges
+    L = np.linalg.norm(at[e[:, 0]] - at[e[:, 1]], axis=1)
+    bad = np.abs(L - topology.rest) > tol * topology.rest  # nan (an end not detected) compares False
+    condemned = np.zeros(n_keypoints, bool)
+    condemned[e[bad].ravel()] = True
+    return ~condemned[idx]
+
+
 def track_frame(
     X_prev: np.ndarray,
     topology: Topology,
@@ -146,6 +163,9 @@ def track_frame(
     )
     idx = [ai[m >= 0]]
     pos = [det_pos[m[m >= 0]]]
+    if params.anchor_edge_tol > 0:
+        ok = consistent_anchors(topology, idx[0], pos[0], len(X_prev), params.anchor_edge_tol)
+        idx, pos = [idx[0][ok]], [pos[0][ok]]
     if tcp is not None and grasp_idx is not None:
         g = np.asarray(grasp_idx, np.int64)
         held = g >= 0
