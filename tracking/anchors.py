@@ -42,7 +42,8 @@ class Contour3D:
 
     sides: four (n_i, 3) float64 m polylines corner to corner: top (c0->c1, cols), right (c1->c2, rows),
     bottom (c3->c2, cols), left (c0->c3, rows); sides_uv: the same in image pixels (n_i, 2);
-    lengths: (4,) m measured along the dense contour.
+    lengths: (4,) m measured along the dense contour. Kc: (3, 3) camera matrix of the contour image;
+    cloud_uv: (N, 2) cloud pixels in it, tree_uv: their cKDTree.
     """
 
     sides: list[np.ndarray]
@@ -50,6 +51,7 @@ class Contour3D:
     lengths: np.ndarray
     Kc: np.ndarray
     cloud_uv: np.ndarray
+    tree_uv: cKDTree
 
 
 def lift_pixels(pix_uv: np.ndarray, cloud_uv: np.ndarray, cloud: np.ndarray, radius_px: float, k: int) -> np.ndarray:
@@ -221,7 +223,7 @@ def contour_3d(
     tree_uv = cKDTree(uv)
     lifted = [cloud[tree_uv.query(s)[1]] for s in sides_uv]
     lengths = np.array([_polyline_length(_smooth_polyline(p, max(3, int(0.01 / px_m)))) for p in lifted])
-    return Contour3D(lifted, sides_uv, lengths, Kc, uv)
+    return Contour3D(lifted, sides_uv, lengths, Kc, uv, tree_uv)
 
 
 def _resample_by_3d(uv: np.ndarray, xyz: np.ndarray, n: int) -> np.ndarray:
@@ -266,7 +268,7 @@ def boundary_indices(rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
 def lift_grid(ct: Contour3D, cloud: np.ndarray, rows: int, cols: int) -> np.ndarray:
     """Grid keypoints (rows*cols, 3) m: Coons grid in the image lifted by the nearest projected cloud point."""
     g = grid_boundary_uv(ct, rows, cols).reshape(-1, 2)
-    return cloud[cKDTree(ct.cloud_uv).query(g)[1]]
+    return cloud[ct.tree_uv.query(g)[1]]
 
 
 def detect_anchors_2d(

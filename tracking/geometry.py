@@ -91,14 +91,12 @@ def splat_mask(
     uv, z = uv[ok], z[ok]
     f = 0.5 * (K[0, 0] + K[1, 1])
     r_px = int(np.clip(np.ceil(radius_m * f / np.median(z)), 1, 25))
-    dy, dx = np.mgrid[-r_px : r_px + 1, -r_px : r_px + 1]
-    disc = (dx**2 + dy**2) <= r_px**2 + 0.5
-    offs = np.stack([dy[disc], dx[disc]], axis=1)
     rc = np.rint(uv[:, ::-1]).astype(np.int64)
-    allrc = (rc[:, None, :] + offs[None, :, :]).reshape(-1, 2)
-    inside = (allrc[:, 0] >= 0) & (allrc[:, 0] < H) & (allrc[:, 1] >= 0) & (allrc[:, 1] < W)
-    allrc = allrc[inside]
-    mask[allrc[:, 0], allrc[:, 1]] = 1
+    inside = (rc[:, 0] >= 0) & (rc[:, 0] < H) & (rc[:, 1] >= 0) & (rc[:, 1] < W)
+    mask[rc[inside, 0], rc[inside, 1]] = 1
+    dy, dx = np.mgrid[-r_px : r_px + 1, -r_px : r_px + 1]
+    disc = ((dx**2 + dy**2) <= r_px**2 + 0.5).astype(np.uint8)
+    mask = cv2.dilate(mask, disc)  # union of the discs centred on the points
     k = np.ones((3, 3), np.uint8)
     mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, k)
     return mask.astype(bool)

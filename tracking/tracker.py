@@ -134,7 +134,7 @@ def consistent_anchors(
 def track_frame(
     X_prev: np.ndarray,
     topology: Topology,
-    cloud: np.ndarray,
+    cloud: np.ndarray | cKDTree,
     det_pos: np.ndarray,
     det_kinds: np.ndarray,
     params: TrackingParams,
@@ -144,7 +144,8 @@ def track_frame(
 ) -> tuple[np.ndarray, int]:
     """One step of Algorithm 2: match anchors, add grasped TCP anchors, solve warm-started from X_prev.
 
-    X_prev: (N, 3) m; cloud: (M, 3) m segmented; det_pos/det_kinds: re-detected anchors (D, 3) m / (D,).
+    X_prev: (N, 3) m; cloud: (M, 3) m segmented (or its cKDTree);
+    det_pos/det_kinds: re-detected anchors (D, 3) m / (D,).
     X_pred: (N, 3) m predicted keypoints (e.g. constant velocity) used to match anchors, default X_prev.
     An anchor not re-detected is left free this frame (warm-started at its previous position).
     Keypoints held by a gripper (grasp_idx >= 0) are fixed at that gripper's TCP (G, 3) m.
@@ -298,13 +299,14 @@ class Tracker:
         det, kinds = detect_anchors(self.topology.kind, cloud, self.K, self.T, p, held)
         t1 = time.perf_counter()
         pred = self.keypoints if self._velocity is None else self.keypoints + self._velocity
-        X, matched = track_frame(self.keypoints, self.topology, cloud, det, kinds, p, tcp, self.grasp_idx, pred)
-        res = self._result(X, cloud, matched, na)
+        tree = cKDTree(cloud)  # shared by the solver's cloud projection and the CD score
+        X, matched = track_frame(self.keypoints, self.topology, tree, det, kinds, p, tcp, self.grasp_idx, pred)
+        res = self._result(X, tree, matched, na)
         self.last_timings_ms = {"anchors": 1e3 * (t1 - t0), "solve": 1e3 * (time.perf_counter() - t1)}
         return res
 
     def _result(
-        self, X: np.ndarray, cloud: np.ndarray, matched: int, total: int, force_bad: bool = False
+        self, X: np.ndarray, cloud: np.ndarray | cKDTree, matched: int, total: int, force_bad: bool = False
     ) -> FrameResult:
         """Score a solution, update the state and the loss-of-track counter.
 
@@ -314,7 +316,8 @@ class Tracker:
         assert self.topology is not None
         p = self.params
         abs_mm = edge_rmse_mm(X, self.topology.edges, self.topology.rest)
-        cd_mm = chamfer_mm(X, cloud) if len(cloud) else float("inf")
+        n_points = cloud.n if isinstance(cloud, cKDTree) else len(cloud)
+        cd_mm = chamfer_mm(X, cloud) if n_points else float("inf")
         jump = self.keypoints is not None and bool(np.median(np.linalg.norm(X - self.keypoints, axis=1)) > p.max_jump_m)
         bad = force_bad or jump or abs_mm > 1e3 * p.max_edge_rmse_m or cd_mm > 1e3 * p.max_chamfer_m
         self._bad = self._bad + 1 if bad else 0
@@ -330,4 +333,4 @@ class Tracker:
         if self._bad >= p.lost_after_frames:
             status = TrackStatus.LOST
             self.reset()
-        return FrameResult(X, smoothed, status, abs_mm, cd_mm, len(cloud), matched, total, grasp)
+        return FrameResult(X, smoothed, status, abs_mm, cd_mm, n_points, matched, total, grasp)
