@@ -30,6 +30,7 @@ from drivers.types import RGBDFrame
 log = logging.getLogger(__name__)
 
 ACTIVE_SUFFIX = ".mcap.active"
+TF_RATE = 30.0  # Hz: TCP frames on /tf
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
 
@@ -37,11 +38,11 @@ def _ns(t: float) -> int:
     return max(0, int(round(t * 1e9)))
 
 
-def _quat_xyzw(R: np.ndarray) -> tuple[float, float, float, float]:
+def _quats_xyzw(R: np.ndarray) -> np.ndarray:
+    """(n, 4) unit quaternions x, y, z, w of rotation matrices (n, 3, 3), in one call."""
     from scipy.spatial.transform import Rotation
 
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    return float(x), float(y), float(z), float(w)
+    return Rotation.from_matrix(R).as_quat()
 
 
 def _fsync_dir(path: Path) -> None:
@@ -74,6 +75,7 @@ class EpisodeWriter:
         self._seq: dict[str, int] = {}
         self.camera_id = camera_id
         self.n_frames = 0
+        self._last_tf = -np.inf
         self.first_frame: int | None = None
         self.last_frame: int | None = None
         self.closed = False
@@ -181,8 +183,8 @@ class EpisodeWriter:
         ts = Timestamp()
         ts.FromNanoseconds(_ns(t))
         msg = self._TF()
-        for child, T in poses.items():
-            x, y, z, w = _quat_xyzw(T[:3, :3])
+        quats = _quats_xyzw(np.stack([T[:3, :3] for T in poses.values()]))
+        for (child, T), (x, y, z, w) in zip(poses.items(), quats.tolist(), strict=True):
             msg.transforms.append(
                 FrameTransform(
                     timestamp=ts, parent_frame_id="world", child_frame_id=child,
@@ -193,10 +195,16 @@ class EpisodeWriter:
         self._add("/tf", msg.SerializeToString(), t)
 
     def write_arm_state(self, state: dict[str, Any], tcp_poses: dict[str, np.ndarray] | None = None) -> None:
-        """One sample of both arms (the ``arms/state`` JSON) and, optionally, their TCP frames."""
-        self._add_json("/arms/state", state, state["stamp"])
-        if tcp_poses:
-            self.write_transforms(state["stamp"], tcp_poses)
+        """One sample of both arms (the ``arms/state`` JSON, every sample) and their TCP frames.
+
+        The TCP frames go to ``/tf`` at most at ``TF_RATE`` (for viewing; the exact arm input is in
+        ``u`` of every state), which keeps the files and the writer's CPU small.
+        """
+        t = float(state["stamp"])
+        self._add_json("/arms/state", state, t)
+        if tcp_poses and t - self._last_tf >= 1.0 / TF_RATE - 1e-9:
+            self._last_tf = t
+            self.write_transforms(t, tcp_poses)
 
     def write_keypoints(self, msg: dict[str, Any], t: float) -> None:
         """Tracked keypoints (exact JSON) and a SceneUpdate with spheres and edge lines."""
