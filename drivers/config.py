@@ -158,6 +158,9 @@ class FakeCameraConfig(_CameraBase):
     edge_dropout: float = Field(0.5, ge=0.0, le=1.0, description="probability a depth-edge pixel is lost")
     flying_pixels: float = Field(0.001, ge=0.0, le=0.05, description="fraction of pixels that fly")
     clutter: int = Field(6, ge=0, le=50, description="number of background boxes")
+    queue_depth: int = Field(
+        6, ge=1, le=64, description="frames kept for a late reader, like a device's frame queue (older ones drop)"
+    )
     seed: int = 0
 
 

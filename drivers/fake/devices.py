@@ -27,7 +27,6 @@ from trajectories.kinematics import PandaKinematics
 
 PHYSICS_RATE = 300  # Hz; physics substeps on a fixed grid of absolute times (SimObject.max_substep)
 SUBSTEPS_PER_CHUNK = 1  # TCP poses from FK at every substep: results independent of the query pattern
-QUEUE_DEPTH = 2  # frames the fake camera keeps for a late reader (older ones are dropped)
 START_TOLERANCE = 0.02  # rad; a motion must start this close to the arm's current joints
 
 
@@ -537,7 +536,8 @@ class FakeCamera:
     def read(self, timeout: float = 1.0) -> RGBDFrame:
         """The next unread frame on the 1/fps grid (sleeping until its time), rendered from the station.
 
-        A reader later than ``QUEUE_DEPTH`` frames loses the older ones (a gap in frame_number).
+        A reader later than ``queue_depth`` frames loses the older ones (a gap in frame_number). A frame
+        read late is rendered with the arms at its capture time and the object as simulated so far.
         """
         with self._lock:
             renderer = self._renderer
@@ -548,7 +548,7 @@ class FakeCamera:
             if self._last_index is None:  # first frame: the one captured at or after now
                 k = math.ceil(now * fps - 1e-6)
             else:  # the next unread frame, unless it fell out of the device queue meanwhile
-                k = max(self._last_index + 1, math.floor(now * fps + 1e-6) - QUEUE_DEPTH + 1)
+                k = max(self._last_index + 1, math.floor(now * fps + 1e-6) - self.config.queue_depth + 1)
             k += self._drops
             self._drops = 0
             t_frame = k / fps
