@@ -44,7 +44,6 @@ from scipy.optimize import linear_sum_assignment
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from drivers.clock import SimClock  # noqa: E402
-from drivers.fake.devices import QUEUE_DEPTH  # noqa: E402
 from drivers.types import GroundTruth  # noqa: E402
 from orchestrator.config import DEFAULT_CONFIG, Config, ObjectConfig, load_config  # noqa: E402
 from orchestrator.plan import RunItem  # noqa: E402
@@ -125,6 +124,7 @@ def simulate(
     try:
         motion = plan_motion(RunItem(0, obj, obj.programs[0], speed, 0), station, cfg.plan.fast_duration)
         fps = station.fps
+        queue_depth = getattr(cfg.station.camera, "queue_depth", 1)  # frames the device keeps for a late reader
         times = frame_times if frame_times is not None else [k / fps for k in range(int(round(seconds * fps)))]
         events = list(motion.gripper_events)
         started: float | None = None
@@ -142,7 +142,7 @@ def simulate(
                     station.grippers[ev.arm].command(ev.closed, ev.width, ev.force)
             clock.sleep_until(t)
             k = int(round(t * fps))
-            queued = max(last + 1, math.floor(t * fps + 1e-6) - QUEUE_DEPTH + 1) if last is not None else k
+            queued = max(last + 1, math.floor(t * fps + 1e-6) - queue_depth + 1) if last is not None else k
             if k > queued:  # skipping frames (init check): let the device drop the ones in between
                 station.camera.inject_fault("drop", k - queued)
             msg, _ = station.sample_state()  # the joint states the worker would hold at this frame
