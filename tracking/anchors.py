@@ -19,6 +19,7 @@ from tracking.skeleton import JUNCTION, LEAF, skeleton_graph
 
 BOUNDARY = 2
 CORNER = 3
+SIDE_SMOOTH_M = 0.04  # a cloth side's lifted contour is smoothed over this before it is measured, m
 
 
 @dataclass(frozen=True)
@@ -43,7 +44,7 @@ class Contour3D:
     sides: four (n_i, 3) float64 m polylines corner to corner: top (c0->c1, cols), right (c1->c2, rows),
     bottom (c3->c2, cols), left (c0->c3, rows); sides_uv: the same in image pixels (n_i, 2);
     lengths: (4,) m measured along the dense contour. Kc: (3, 3) camera matrix of the contour image;
-    cloud_uv: (N, 2) cloud pixels in it, tree_uv: their cKDTree.
+    cloud_uv: (N, 2) cloud pixels in it, tree_uv: their cKDTree; pixel_m: its pixel size at the object, m.
     """
 
     sides: list[np.ndarray]
@@ -52,6 +53,7 @@ class Contour3D:
     Kc: np.ndarray
     cloud_uv: np.ndarray
     tree_uv: cKDTree
+    pixel_m: float
 
 
 def lift_pixels(pix_uv: np.ndarray, cloud_uv: np.ndarray, cloud: np.ndarray, radius_px: float, k: int) -> np.ndarray:
@@ -223,15 +225,17 @@ def contour_3d(
     tree_uv = cKDTree(uv)
     lifted = [cloud[tree_uv.query(s)[1]] for s in sides_uv]
     lengths = np.array([_polyline_length(_smooth_polyline(p, max(3, int(0.01 / px_m)))) for p in lifted])
-    return Contour3D(lifted, sides_uv, lengths, Kc, uv, tree_uv)
+    return Contour3D(lifted, sides_uv, lengths, Kc, uv, tree_uv, px_m)
 
 
-def _resample_by_3d(uv: np.ndarray, xyz: np.ndarray, n: int) -> np.ndarray:
+def _resample_by_3d(uv: np.ndarray, xyz: np.ndarray, n: int, window: int) -> np.ndarray:
     """n image points (n, 2) along a side uv (M, 2) equally spaced in the 3D arc length of its
-    lifted points xyz (M, 3) m (lightly smoothed), so foreshortening does not bunch grid nodes."""
+    lifted points xyz (M, 3) m, so foreshortening does not bunch grid nodes. The lifted points are
+    smoothed over ``window`` samples first: one point's depth noise (~2 mm at 2 mm spacing) would
+    lengthen the side where it is noisiest and move the nodes with the noise."""
     if len(uv) < 2:
         return np.repeat(uv[:1], n, axis=0)
-    p = _smooth_polyline(xyz, 5)
+    p = _smooth_polyline(xyz, window)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
     if s[-1] <= 0:
         return _resample(uv, n)
@@ -242,10 +246,11 @@ def _resample_by_3d(uv: np.ndarray, xyz: np.ndarray, n: int) -> np.ndarray:
 def grid_boundary_uv(ct: Contour3D, rows: int, cols: int) -> np.ndarray:
     """Coons-patch grid (rows, cols, 2) in the contour image from its four sides, each resampled
     evenly by 3D arc length."""
-    top = _resample_by_3d(ct.sides_uv[0], ct.sides[0], cols)
-    right = _resample_by_3d(ct.sides_uv[1], ct.sides[1], rows)
-    bottom = _resample_by_3d(ct.sides_uv[2], ct.sides[2], cols)
-    left = _resample_by_3d(ct.sides_uv[3], ct.sides[3], rows)
+    w = max(5, int(round(SIDE_SMOOTH_M / ct.pixel_m)))
+    top = _resample_by_3d(ct.sides_uv[0], ct.sides[0], cols, w)
+    right = _resample_by_3d(ct.sides_uv[1], ct.sides[1], rows, w)
+    bottom = _resample_by_3d(ct.sides_uv[2], ct.sides[2], cols, w)
+    left = _resample_by_3d(ct.sides_uv[3], ct.sides[3], rows, w)
     u = np.linspace(0.0, 1.0, cols)[None, :, None]
     v = np.linspace(0.0, 1.0, rows)[:, None, None]
     c00, c01, c10, c11 = top[0], top[-1], bottom[0], bottom[-1]
