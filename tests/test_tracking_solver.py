@@ -82,3 +82,20 @@ def test_ablation_switches():
     assert not np.allclose(solve_keypoints(X0, edges, rest, [0], a_pos, cloud, 10, no_anchor)[0], a_pos[0])
     anchor = solve_keypoints(X0, edges, rest, [0], a_pos, cloud, 10, P)
     assert np.allclose(anchor[0], a_pos[0])
+
+
+def test_centre_on_ridge_moves_points_across_a_tube_to_the_side_facing_the_camera():
+    from tracking.segmentation import voxel_downsample
+    from tracking.solver import centre_on_ridge
+
+    rng = np.random.default_rng(0)
+    r = 0.008  # a tube along x at the origin, seen from +z: the ridge is the line y = 0, z = r
+    x = rng.uniform(-0.1, 0.1, 4000)
+    phi = rng.uniform(-0.5 * np.pi, 0.5 * np.pi, 4000)  # the visible half
+    cloud = np.stack([x, r * np.sin(phi), r * np.cos(phi)], axis=1) + rng.normal(0, 0.001, (4000, 3))
+    cloud = voxel_downsample(cloud, P.voxel_m)
+    X = np.stack([np.linspace(-0.05, 0.05, 7), np.full(7, 0.005), np.full(7, r * np.cos(np.arcsin(5 / 8)))], axis=1)
+    out = centre_on_ridge(X, np.tile([1.0, 0, 0], (7, 1)), cKDTree(cloud), np.array([0.0, 0, 1.0]), 0.012)
+    assert np.abs(out[:, 1]).max() < 0.0025  # across: centred (was 5 mm off; 4 mm voxels, 1 mm noise)
+    assert np.abs(out[:, 2] - r).max() < 0.0015  # on the skin at the ridge, not inside the tube
+    assert np.abs(out[:, 0] - X[:, 0]).max() < 1e-9  # along the tube: untouched

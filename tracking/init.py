@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
 
 from tracking.anchors import (
     boundary_indices,
@@ -18,7 +19,7 @@ from tracking.geometry import project_points
 from tracking.metrics import edge_lengths
 from tracking.params import TrackingParams
 from tracking.skeleton import LEAF
-from tracking.solver import edge_colouring, solve_keypoints
+from tracking.solver import centre_on_ridge, chain_tangents, edge_colouring, solve_keypoints
 
 
 class InitialisationError(RuntimeError):
@@ -192,7 +193,9 @@ def initialise_1d(
     edges chain each branch node to node; rest length of a branch = its 3D arc length / its edge count. Keypoint 0
     is the leaf at ``root_hint`` (3,) m or the image's leftmost (``root_leaf``); branches are
     numbered depth-first, leftmost (image) first at junctions. held: (H, 3) m TCPs of closed
-    grippers: the ends they hold are placed there (``snap_held_leaves``).
+    grippers: the ends they hold are placed there (``snap_held_leaves``). The solved free keypoints
+    are finally moved to the ridge of the tube's visible skin (``snap_to_ridge``): where across the
+    tube a keypoint ends is otherwise set by depth noise (3 mm spread over camera seeds, 1.5 after).
     """
     sk = skeleton_3d(cloud, K, T_world_cam, params, all_components=False)
     if len(sk.branches) == 0:
@@ -240,10 +243,29 @@ def initialise_1d(
     anchor_idx = node_kp[node_kp >= 0]
     anchor_kind = kinds[node_kp >= 0]
     topo = Topology("1d", E, np.array(rest), anchor_idx, anchor_kind, chains, None, edge_colouring(E, len(Xa)))
+    tree = cKDTree(cloud)
     Xs = solve_keypoints(
-        Xa, E, topo.rest, anchor_idx, Xa[anchor_idx], cloud, params.init_iterations, params, topo.colours
+        Xa, E, topo.rest, anchor_idx, Xa[anchor_idx], tree, params.init_iterations, params, topo.colours
     )
+    Xs = snap_to_ridge(Xs, topo, anchor_idx, tree, T_world_cam, params)
     return Initialisation(Xs, topo, obj)
+
+
+def snap_to_ridge(
+    X: np.ndarray, topology: Topology, fixed: np.ndarray, tree: cKDTree, T_world_cam: np.ndarray,
+    params: TrackingParams,
+) -> np.ndarray:
+    """A 1D object's keypoints X (N, 3) m, except ``fixed`` (F,) (anchors, held ends), moved to the
+    ridge of the tube's visible skin (``centre_on_ridge`` within ``params.ridge_radius_m``; 0: off).
+    tree: cKDTree of the segmented cloud, m. Returns (N, 3) float64 m."""
+    if params.ridge_radius_m <= 0 or topology.kind != "1d":
+        return X
+    free = np.ones(len(X), bool)
+    free[np.asarray(fixed, np.int64)] = False
+    out = X.copy()
+    T = chain_tangents(X, topology.chains)
+    out[free] = centre_on_ridge(X[free], T[free], tree, T_world_cam[:3, 3], params.ridge_radius_m)
+    return out
 
 
 def grid_topology(rows: int, cols: int, dx: float, dy: float) -> tuple[np.ndarray, np.ndarray]:

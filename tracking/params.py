@@ -55,6 +55,8 @@ class TrackingParams:
       surface_k: cloud projection = nearest point when <= 1 (the paper), else nearest point plus the
         tangential offset on the local PCA plane of this many neighbours (no snapping to voxel centres).
       surface_slide_m: largest tangential offset from the nearest point, m.
+      ridge_radius_m: a 1D object's free initial keypoints are finally moved to the ridge of the
+        tube's visible skin, found from the cloud within this radius (0: off), m.
     Tracking (Algorithm 2)
       anchor_gate_m: Hungarian matches of re-detected to predicted anchors farther than this are rejected, m.
       anchor_regate_m: leftover anchors and detections are matched again within this wider gate, m.
@@ -115,6 +117,7 @@ class TrackingParams:
     use_cloud_projection: bool = True
     surface_k: int = 8
     surface_slide_m: float = 0.003
+    ridge_radius_m: float = 0.012
 
     anchor_gate_m: float = 0.05
     anchor_regate_m: float = 0.15

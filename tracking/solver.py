@@ -121,3 +121,58 @@ def solve_keypoints(
         if use_anchors:
             X[anchor_idx] = anchor_pos
     return X
+
+
+def chain_tangents(X: np.ndarray, chains: list[np.ndarray]) -> np.ndarray:
+    """Unit tangents (N, 3) of keypoints X (N, 3) m along their chains (index arrays, node to node):
+    central differences inside a chain, one-sided at its ends (a keypoint on several chains, e.g. a
+    junction, keeps the last one's)."""
+    T = np.zeros_like(X)
+    for ch in chains:
+        if len(ch) >= 2:
+            T[ch] = np.gradient(X[ch], axis=0)
+    return T / np.maximum(np.linalg.norm(T, axis=1, keepdims=True), 1e-12)
+
+
+def centre_on_ridge(
+    X: np.ndarray, tangents: np.ndarray, tree: cKDTree, eye: np.ndarray, radius_m: float, k: int = 96,
+    band_m: float = 0.003,
+) -> np.ndarray:
+    """Move points X (n, 3) m on a tube's visible skin to its ridge (the line nearest the camera).
+
+    tangents: (n, 3) unit tube directions; tree: cKDTree of the cloud (m); eye: (3,) camera centre, m.
+    The cloud within ``radius_m`` across and ``radius_m / 2`` along the tube (up to k points) is its
+    cross-section there: across the tube (perpendicular to the tangent and the line of sight) a
+    point goes to the middle of that section (between its 10th and 90th percentiles), along the
+    line of sight to the median of the section's points within ``band_m`` of that middle. A
+    keypoint's place across the tube is otherwise undetermined (edge lengths along the tube do not
+    fix it) and the noise of the one point it was projected on decides it. Returns (n, 3) float64 m.
+    """
+    X = np.array(X, np.float64)
+    n = len(X)
+    if n == 0 or tree.n == 0:
+        return X
+    k = min(k, tree.n)
+    d, nn = tree.query(X, k=k, distance_upper_bound=float(np.hypot(radius_m, 0.5 * radius_m)))
+    d, nn = d.reshape(n, k), nn.reshape(n, k)
+    rel = tree.data[np.minimum(nn, tree.n - 1)] - X[:, None, :]  # (n, k, 3)
+    view = X - eye
+    lat = np.cross(tangents, view)
+    lat /= np.maximum(np.linalg.norm(lat, axis=1, keepdims=True), 1e-12)
+    dep = view - np.einsum("nk,nk->n", view, tangents)[:, None] * tangents
+    dep /= np.maximum(np.linalg.norm(dep, axis=1, keepdims=True), 1e-12)
+    a = np.einsum("nki,ni->nk", rel, lat)  # across, m
+    sec = np.isfinite(d) & (np.abs(np.einsum("nki,ni->nk", rel, tangents)) <= 0.5 * radius_m)
+    sec &= np.abs(a) <= radius_m
+    has = sec.sum(axis=1) >= 3
+    across = np.zeros(n)
+    if has.any():
+        q = np.nanpercentile(np.where(sec[has], a[has], np.nan), [10.0, 90.0], axis=1)
+        across[has] = 0.5 * (q[0] + q[1])
+    band = sec & (np.abs(a - across[:, None]) <= band_m)
+    z = np.where(band, np.einsum("nki,ni->nk", rel, dep), np.nan)
+    on = has & band.any(axis=1)
+    along_view = np.zeros(n)
+    if on.any():
+        along_view[on] = np.nanmedian(z[on], axis=1)
+    return X + across[:, None] * lat + along_view[:, None] * dep
