@@ -90,3 +90,29 @@ def test_background_model_segmentation_and_update(cam):
     # the old rope position is now background: nothing segmented there
     far_from_new = cKDTree(f1.centreline).query(f0.centreline)[0] > 0.03
     assert cKDTree(seg.points).query(f0.centreline[far_from_new])[0].min() > 0.01
+
+
+def test_dbscan_labels_clusters_and_noise():
+    from tracking.segmentation import dbscan_labels
+
+    rng = np.random.default_rng(0)
+    a = rng.uniform(0, 0.1, (300, 3)) * [1, 1, 0.05]
+    b = a + [0.5, 0, 0]
+    noise = np.array([[1.0, 1.0, 1.0], [-1.0, 0.5, 0.0]])
+    lab = dbscan_labels(np.concatenate([a, b, noise]), 0.015, 3)
+    assert len(set(lab[:300].tolist())) == 1 and len(set(lab[300:600].tolist())) == 1
+    assert lab[0] != lab[300] and (lab[:600] >= 0).all() and (lab[600:] == -1).all()
+    assert sorted(set(lab[:600].tolist())) == [0, 1]
+
+
+def test_growth_stops_at_the_depth_step_behind_an_outline():
+    from tracking.segmentation import grow_depth_region
+
+    depth = np.full((40, 60), 2.0, np.float32)  # background 2 m
+    depth[10:30, 10:40] = np.linspace(1.0, 1.05, 30, dtype=np.float32)[None, :]  # a smooth sheet in front
+    seeds = np.zeros(depth.shape, bool)
+    seeds[15, 12] = True
+    grown = grow_depth_region(depth, seeds, np.ones(depth.shape, bool), 0.02)
+    sheet = np.zeros(depth.shape, bool)
+    sheet[10:30, 10:40] = True
+    assert (grown == sheet).all()

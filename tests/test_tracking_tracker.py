@@ -110,3 +110,15 @@ def test_smoothing():
     assert np.allclose(smooth_causal(traj, 3)[:, 0, 0], [0, 0.5, 1, 2, 3, 4])
     assert np.allclose(smooth_symmetric(traj, 3)[:, 0, 0], [0.5, 1, 2, 3, 4, 4.5])
     assert np.allclose(smooth_symmetric(traj, 1), traj)
+
+
+def test_consistent_anchors_leave_a_torn_edge_free():
+    from tracking.init import Topology
+    from tracking.tracker import consistent_anchors
+
+    E = np.array([[0, 1], [1, 2], [2, 3]])
+    topo = Topology("1d", E, np.full(3, 0.1), np.array([0, 1, 2, 3]), np.zeros(4, np.int64), [np.arange(4)])
+    pos = np.array([[0.0, 0, 0], [0.1, 0, 0], [0.2, 0, 0], [0.45, 0, 0]])  # the last edge 2.5x its rest
+    ok = consistent_anchors(topo, np.arange(4), pos, 4, 0.15)
+    assert ok.tolist() == [True, True, False, False]
+    assert consistent_anchors(topo, np.array([0, 3]), pos[[0, 3]], 4, 0.15).all()  # no edge between them
