@@ -246,6 +246,7 @@ class Session:
         self._max_seconds: float | None = None
         self._last_frame_number: int | None = None
         self._run_info: dict[str, Any] = {}
+        self._episode_open = False
 
     # ------------------------------------------------------------------ public
     def run(self, max_seconds: float | None = None, loop: bool = False) -> SessionSummary:
@@ -495,9 +496,9 @@ class Session:
         station.arms["left"].start_motion(motion.left)
         t1 = self.clock.now()
         station.arms["right"].start_motion(motion.right)
-        self._start_skew = self.clock.now() - t0
-        self.summary.start_skew_s = max(self.summary.start_skew_s, self._start_skew)
-        log.debug("arm start skew %.3f ms (left call %.3f ms)", self._start_skew * 1e3, (t1 - t0) * 1e3)
+        skew = self.clock.now() - t0
+        self.summary.start_skew_s = max(self.summary.start_skew_s, skew)
+        log.debug("arm start skew %.3f ms (left call %.3f ms)", skew * 1e3, (t1 - t0) * 1e3)
         return t0
 
     def _record_frame(self, frame: RGBDFrame, station: Station) -> None:
@@ -526,7 +527,7 @@ class Session:
 
     def _close_episode(self, station: Station, complete: bool, fault: bool = False) -> None:
         assert self._recorder is not None
-        if not getattr(self, "_episode_open", False):
+        if not self._episode_open:
             return
         meta: dict[str, Any] = {"complete": complete, "fault": fault}  # every episode has both keys
         if station.sim is not None:

@@ -24,7 +24,7 @@ def test_frame_round_trip() -> None:
 def test_malformed_frames_are_rejected() -> None:
     data = encode_frame(make_frame(1), np.eye(4), "cam0")
     with pytest.raises(ValueError, match="not a frame message"):
-        decode_frame(b"XXXX" + data[4:])
+        decode_frame(b"BAD!" + data[4:])
     with pytest.raises(ValueError, match="size does not match"):
         decode_frame(data[:-10])
 
