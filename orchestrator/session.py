@@ -467,8 +467,6 @@ class Session:
                 )
                 if self.stop_event.is_set():
                     break
-            else:
-                k = total
             if chunk >= 0 and episode_frames:
                 self._close_episode(station, episode_frames == per_episode)
             if t_start is not None and not self.stop_event.is_set():
