@@ -124,3 +124,41 @@ def test_farthest_point_sampling():
     idx = farthest_point_sampling(pts, 10, seeds=np.zeros((1, 3)))
     assert len(set(idx.tolist())) == 10
     assert np.linalg.norm(pts[idx[0]]) > 1.5  # first pick is far from the seed
+
+
+def _rounded_rectangle(w: float, h: float, r: float, n: int = 800) -> np.ndarray:
+    """A closed contour (n, 2) px of a w x h rectangle whose corners are rounded with radius r, clockwise on screen."""
+    t = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    c, s = np.cos(t), np.sin(t)
+    # superellipse-free construction: clamp a circle of radius r swept around the inner rectangle
+    x = np.clip(np.abs(c) * 1e3, 0, (w / 2 - r)) * np.sign(c) + r * c
+    y = np.clip(np.abs(s) * 1e3, 0, (h / 2 - r)) * np.sign(s) + r * s
+    return np.stack([x + w / 2, y + h / 2], axis=1)
+
+
+def test_refine_corners_meets_the_fitted_sides_on_a_rounded_corner() -> None:
+    from tracking.anchors import refine_corners
+
+    c = _rounded_rectangle(200.0, 120.0, 20.0)
+    box = np.array([[0.0, 0.0], [200.0, 0.0], [200.0, 120.0], [0.0, 120.0]])
+    ci = np.sort([int(np.argmin(np.linalg.norm(c - b, axis=1))) for b in box])
+    # start each corner off-centre along the rounded arc: the refinement must not depend on it
+    shifted = ci + np.array([6, -6, 6, -6])
+    out = refine_corners(c, shifted, np.array([False, False, False, True]))
+    # the free corners land where the rounded arc meets the bisector: r (1 - 1/sqrt 2) in from the box corner
+    inset = 20.0 * (1 - 1 / np.sqrt(2))
+    pts = c[out]
+    ref = box[[int(np.argmin(np.linalg.norm(box - p, axis=1))) for p in pts]]
+    d = np.abs(np.abs(pts - ref) - inset)
+    assert (d[:3] < 1.0).all(), pts
+    assert out[3] == shifted[3]  # a fixed (held) corner stays
+
+
+def test_savgol_quadratic_matches_scipy() -> None:
+    from scipy.signal import savgol_filter
+
+    from tracking.anchors import _savgol_quadratic
+
+    p = np.random.default_rng(3).normal(size=(90, 3)).cumsum(axis=0)
+    for w in (5, 31, 89):
+        np.testing.assert_allclose(_savgol_quadratic(p, w), savgol_filter(p, w, 2, axis=0, mode="interp"), atol=1e-9)

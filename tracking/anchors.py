@@ -7,10 +7,13 @@ the image-space result is lifted back to 3D from the cloud.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
+from scipy.ndimage import convolve1d
 from scipy.optimize import linear_sum_assignment
+from scipy.signal import savgol_coeffs
 from scipy.spatial import cKDTree
 
 from tracking.geometry import object_image, project_points
@@ -19,7 +22,7 @@ from tracking.skeleton import JUNCTION, LEAF, skeleton_graph
 
 BOUNDARY = 2
 CORNER = 3
-SIDE_SMOOTH_M = 0.04  # a cloth side's lifted contour is smoothed over this before it is measured, m
+SIDE_SMOOTH_M = 0.12  # a cloth side's lifted contour is smoothed over this before it is measured, m
 
 
 @dataclass(frozen=True)
@@ -56,14 +59,18 @@ class Contour3D:
     pixel_m: float
 
 
-def lift_pixels(pix_uv: np.ndarray, cloud_uv: np.ndarray, cloud: np.ndarray, radius_px: float, k: int) -> np.ndarray:
+def lift_pixels(
+    pix_uv: np.ndarray, cloud_uv: np.ndarray, cloud: np.ndarray, radius_px: float, k: int,
+    tree: cKDTree | None = None,
+) -> np.ndarray:
     """Robust 3D of image points: median of up to k cloud points projected within radius_px, else the nearest.
 
-    pix_uv: (P, 2) pixels (col, row); cloud_uv: (N, 2) pixels of cloud (N, 3) m. Returns (P, 3) float64 m.
+    pix_uv: (P, 2) pixels (col, row); cloud_uv: (N, 2) pixels of cloud (N, 3) m; tree: their
+    cKDTree if already built. Returns (P, 3) float64 m.
     """
     if len(pix_uv) == 0:
         return np.zeros((0, 3))
-    tree = cKDTree(cloud_uv)
+    tree = cKDTree(cloud_uv) if tree is None else tree
     k = min(k, len(cloud))
     d, idx = tree.query(pix_uv, k=k, distance_upper_bound=radius_px)
     d, idx = d.reshape(len(pix_uv), k), idx.reshape(len(pix_uv), k)
@@ -178,6 +185,54 @@ def _polyline_length(p: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
 
 
+def _fit_line(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares line through points p (M, 2): (centroid (2,), unit direction (2,))."""
+    m = p.mean(axis=0)
+    _, _, vt = np.linalg.svd(p - m, full_matrices=False)
+    return m, vt[0]
+
+
+def refine_corners(
+    c: np.ndarray, ci: np.ndarray, fixed: np.ndarray, inner: float = 0.2, smooth: int = 5
+) -> np.ndarray:
+    """Free corners of a closed contour c (M, 2) px moved to where their two sides' lines meet.
+
+    ci: (4,) increasing contour indices of the corners; fixed: (4,) bool corners left alone (held).
+    Each side between corners is fitted with a line over its middle (``inner`` of its samples cut
+    at both ends); a free corner becomes the contour point nearest its two sides' intersection,
+    searched within the outer ``inner`` of each side. The nearest contour point to the minimum-area
+    rectangle's corner is ill-defined on a rounded or curled corner (it jumps along the curve with
+    the noise: 6 mm spread over camera seeds); the meeting point of two fitted sides is not.
+    Returns (4,) contour indices.
+    """
+    M = len(c)
+    ci = np.asarray(ci, np.int64)
+    span = np.diff(np.append(ci, ci[0] + M))  # side k runs ci[k] -> ci[k+1], span[k] samples
+    lines = []
+    for k in range(4):
+        a = int(round(inner * span[k]))
+        idx = (ci[k] + np.arange(a, span[k] - a + 1)) % M
+        lines.append(_fit_line(c[idx]) if len(idx) >= 3 else None)
+    h = max(1, smooth // 2)
+    kern = np.ones(2 * h + 1) / (2 * h + 1)
+    cs = np.stack([np.convolve(np.concatenate([c[-h:, i], c[:, i], c[:h, i]]), kern, "valid") for i in range(2)], 1)
+    out = ci.copy()
+    for k in range(4):
+        prev, nxt = lines[k - 1], lines[k]
+        if fixed[k] or prev is None or nxt is None:
+            continue
+        (p0, d0), (p1, d1) = prev, nxt
+        A = np.stack([d0, -d1], axis=1)
+        if abs(np.linalg.det(A)) < 0.3:  # sides nearly parallel: no meeting point to trust
+            continue
+        t = np.linalg.solve(A, p1 - p0)
+        x = p0 + t[0] * d0
+        lo, hi = int(round(inner * span[k - 1])), int(round(inner * span[k]))
+        window = (ci[k] + np.arange(-lo, hi + 1)) % M
+        out[k] = window[int(np.argmin(np.linalg.norm(cs[window] - x, axis=1)))]
+    return out
+
+
 def contour_3d(
     cloud: np.ndarray,
     K: np.ndarray,
@@ -205,14 +260,19 @@ def contour_3d(
         c = c[::-1]  # clockwise on screen (top-left -> top-right -> ...): side 0 is the top
     box = cv2.boxPoints(cv2.minAreaRect(c.astype(np.float32))).astype(np.float64)
     held = np.zeros((0, 3)) if held is None else np.asarray(held, np.float64).reshape(-1, 3)
+    fixed = np.zeros(4, bool)
     if len(held):
         h_uv = project_points(held, Kc, T_world_cam)[0]
         cost = np.linalg.norm(h_uv[:, None, :] - box[None, :, :], axis=2)
         r, k = linear_sum_assignment(cost)
         box[k] = h_uv[r]
+        fixed[k] = True
     ci = np.array([int(np.argmin(np.linalg.norm(c - b, axis=1))) for b in box])
-    ci = np.sort(np.unique(ci))
-    if len(ci) < 4:
+    if len(np.unique(ci)) < 4:
+        return None
+    order = np.argsort(ci)
+    ci = refine_corners(c, ci[order], fixed[order])
+    if len(np.unique(ci)) < 4:
         return None
     start = int(np.argmin(c[ci].sum(axis=1)))
     ci = np.roll(ci, -start)
@@ -228,35 +288,71 @@ def contour_3d(
     return Contour3D(lifted, sides_uv, lengths, Kc, uv, tree_uv, px_m)
 
 
-def _resample_by_3d(uv: np.ndarray, xyz: np.ndarray, n: int, window: int) -> np.ndarray:
-    """n image points (n, 2) along a side uv (M, 2) equally spaced in the 3D arc length of its
-    lifted points xyz (M, 3) m, so foreshortening does not bunch grid nodes. The lifted points are
-    smoothed over ``window`` samples first: one point's depth noise (~2 mm at 2 mm spacing) would
-    lengthen the side where it is noisiest and move the nodes with the noise."""
+@lru_cache(maxsize=64)
+def _savgol_weights(window: int) -> tuple[np.ndarray, np.ndarray]:
+    """Savitzky-Golay smoothing weights (window,) for a quadratic, and the Vandermonde matrix (window, 3)."""
+    return savgol_coeffs(window, 2), np.vander(np.arange(window, dtype=np.float64), 3)
+
+
+def _savgol_quadratic(p: np.ndarray, window: int) -> np.ndarray:
+    """Savitzky-Golay smoothing of a polyline p (M, D), quadratic over ``window`` (odd, <= M) samples.
+
+    As ``scipy.signal.savgol_filter(p, window, 2, axis=0, mode="interp")`` (the first and last
+    half-windows take one quadratic fitted to the first / last window), at a tenth of its cost.
+    """
+    coeffs, V = _savgol_weights(window)
+    out = convolve1d(p, coeffs, axis=0, mode="nearest")
+    h = window // 2
+    head = np.linalg.lstsq(V, p[:window], rcond=None)[0]
+    tail = np.linalg.lstsq(V, p[-window:], rcond=None)[0]
+    out[:h] = V[:h] @ head
+    out[-h:] = V[-h:] @ tail
+    return out
+
+
+def _resample_by_3d(uv: np.ndarray, xyz: np.ndarray, n: int, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """n points along a side, equally spaced in 3D arc length: image points (n, 2) and 3D points (n, 3) m.
+
+    uv: (M, 2) contour pixels of the side; xyz: (M, 3) m their lifted cloud points. The lifted side
+    is smoothed first by a Savitzky-Golay filter (quadratic over ``window`` samples; it keeps the
+    side's ends and bends unbiased): a lifted contour zig-zags with the depth noise, which
+    lengthens the side where it is noisiest (10 % over camera seeds) and would move the nodes
+    with the noise; the nodes are placed on the smoothed side, not re-lifted from single points.
+    """
     if len(uv) < 2:
-        return np.repeat(uv[:1], n, axis=0)
-    p = _smooth_polyline(xyz, window)
+        return np.repeat(uv[:1], n, axis=0), np.repeat(xyz[:1], n, axis=0)
+    w = min(window, len(xyz) - (1 - len(xyz) % 2))
+    p = _savgol_quadratic(xyz, w) if w > 3 else xyz
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
     if s[-1] <= 0:
-        return _resample(uv, n)
+        return _resample(uv, n), _resample(p, n)
     t = np.linspace(0.0, s[-1], n)
-    return np.stack([np.interp(t, s, uv[:, i]) for i in range(2)], axis=1)
+    return (
+        np.stack([np.interp(t, s, uv[:, i]) for i in range(2)], axis=1),
+        np.stack([np.interp(t, s, p[:, i]) for i in range(3)], axis=1),
+    )
 
 
-def grid_boundary_uv(ct: Contour3D, rows: int, cols: int) -> np.ndarray:
+def grid_boundary(ct: Contour3D, rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
     """Coons-patch grid (rows, cols, 2) in the contour image from its four sides, each resampled
-    evenly by 3D arc length."""
+    evenly by 3D arc length, and the boundary nodes' 3D positions (rows, cols, 3) m on the smoothed
+    sides (NaN inside; a corner is the mean of its two sides' ends)."""
     w = max(5, int(round(SIDE_SMOOTH_M / ct.pixel_m)))
-    top = _resample_by_3d(ct.sides_uv[0], ct.sides[0], cols, w)
-    right = _resample_by_3d(ct.sides_uv[1], ct.sides[1], rows, w)
-    bottom = _resample_by_3d(ct.sides_uv[2], ct.sides[2], cols, w)
-    left = _resample_by_3d(ct.sides_uv[3], ct.sides[3], rows, w)
+    (top, top3), (right, right3), (bottom, bottom3), (left, left3) = (
+        _resample_by_3d(ct.sides_uv[k], ct.sides[k], n, w) for k, n in enumerate((cols, rows, cols, rows))
+    )
     u = np.linspace(0.0, 1.0, cols)[None, :, None]
     v = np.linspace(0.0, 1.0, rows)[:, None, None]
     c00, c01, c10, c11 = top[0], top[-1], bottom[0], bottom[-1]
     ruled = (1 - v) * top[None] + v * bottom[None] + (1 - u) * left[:, None] + u * right[:, None]
     bil = (1 - u) * (1 - v) * c00 + u * (1 - v) * c01 + (1 - u) * v * c10 + u * v * c11
-    return ruled - bil
+    xyz = np.full((rows, cols, 3), np.nan)
+    xyz[0, :], xyz[-1, :], xyz[:, 0], xyz[:, -1] = top3, bottom3, left3, right3
+    xyz[0, 0] = 0.5 * (top3[0] + left3[0])
+    xyz[0, -1] = 0.5 * (top3[-1] + right3[0])
+    xyz[-1, 0] = 0.5 * (bottom3[0] + left3[-1])
+    xyz[-1, -1] = 0.5 * (bottom3[-1] + right3[-1])
+    return ruled - bil, xyz
 
 
 def boundary_indices(rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
@@ -272,8 +368,12 @@ def boundary_indices(rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
 
 def lift_grid(ct: Contour3D, cloud: np.ndarray, rows: int, cols: int) -> np.ndarray:
     """Grid keypoints (rows*cols, 3) m: Coons grid in the image lifted by the nearest projected cloud point."""
-    g = grid_boundary_uv(ct, rows, cols).reshape(-1, 2)
-    return cloud[ct.tree_uv.query(g)[1]]
+    g, b = grid_boundary(ct, rows, cols)
+    X = lift_pixels(g.reshape(-1, 2), ct.cloud_uv, cloud, 3.0, 8, ct.tree_uv)
+    b = b.reshape(-1, 3)
+    on = np.isfinite(b[:, 0])
+    X[on] = b[on]
+    return X
 
 
 def detect_anchors_2d(
