@@ -16,6 +16,10 @@ from orchestrator.config import DEFAULT_CONFIG, Config, ConfigError, load_config
 
 log = logging.getLogger("trackdeform")
 DEMO_OBJECTS = ("rope", "branched_rope", "cloth")
+FRESH_HELP = (
+    "start the plan over instead of resuming: the output folder's journal is moved aside "
+    "(session.journal.<time>.jsonl), its episodes are kept and numbering continues"
+)
 
 
 def _install_signal_handlers(stop: threading.Event) -> None:
@@ -31,9 +35,17 @@ def _install_signal_handlers(stop: threading.Event) -> None:
     signal.signal(signal.SIGTERM, handler)
 
 
-def _session_dir(config: Config, out: str | None) -> Path:
+def _session_dir(config: Config, out: str | None, fresh: bool = False) -> Path:
+    """``--out``, else the newest unfinished session folder of this plan (resume), else a new timestamped one."""
     if out:
         return Path(out)
+    if not fresh:
+        from orchestrator.journal import find_resumable
+
+        found = find_resumable(Path(config.output.directory), config)
+        if found is not None:
+            print(f"resuming the unfinished session in {found} (--fresh starts a new folder)", file=sys.stderr)
+            return found
     stamp = time.strftime("%Y%m%d-%H%M%S")
     return Path(config.output.directory) / f"{stamp}_{config.station.name}"
 
@@ -46,16 +58,26 @@ def run_session(
     loop: bool,
     with_worker: bool,
     quiet: bool = False,
+    fresh: bool = False,
 ) -> int:
-    """Open the bus, start the tracking worker if asked, run a session, print the summary."""
+    """Open the folder's journal (resume), the bus, the tracking worker if asked; run a session; print the summary."""
     from drivers.clock import RealClock, SimClock
     from orchestrator.bus import Bus
+    from orchestrator.journal import Journal, JournalError
     from orchestrator.progress import Progress
     from orchestrator.session import Session
 
+    try:  # before anything starts: another plan's journal is refused with the way out
+        journal = Journal.open(out_dir, config, fresh=fresh)
+    except JournalError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     stop = threading.Event()
     _install_signal_handlers(stop)
     progress = Progress(enabled=not quiet)
+    if journal.moved_aside is not None:
+        progress.message(f"--fresh: moved the previous journal aside to {journal.moved_aside.name}; "
+                         "its episodes stay and numbering continues")
     clock = SimClock() if config.clock == "sim" else RealClock()
     bus = None
     worker = None
@@ -71,15 +93,17 @@ def run_session(
 
             worker = start_worker(config, out_dir)
         progress.message(f"recording to {out_dir}")
-        session = Session(config, out_dir, clock, bus=bus, progress=progress, stop_event=stop)
+        session = Session(config, out_dir, clock, bus=bus, progress=progress, stop_event=stop, journal=journal)
         summary = session.run(max_seconds=max_seconds, loop=loop)
     finally:
+        journal.close()  # the session closes it too; this covers a failure before it ran
         if worker is not None:
             worker.stop()
         if bus is not None:
             bus.close()
     print(summary.text())
-    return 0 if summary.episodes and not summary.runs_failed and not summary.errors else 1
+    recorded_or_resumed = summary.episodes or summary.runs_already_done  # nothing left to do is a success
+    return 0 if recorded_or_resumed and not summary.runs_failed and not summary.errors else 1
 
 
 # ---------------------------------------------------------------------- commands
@@ -102,7 +126,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         data["tracking"]["enabled"] = False
     config = Config.model_validate(data)
     out = Path(args.out) if args.out else Path("runs") / f"demo-{time.strftime('%Y%m%d-%H%M%S')}"
-    return run_session(config, out, max_seconds=args.seconds, loop=True, with_worker=not args.no_tracking)
+    return run_session(config, out, max_seconds=args.seconds, loop=True, with_worker=not args.no_tracking,
+                       fresh=args.fresh)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -111,8 +136,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.connect:
         overrides["bus.connect"] = args.connect
     config = load_config(args.config, overrides)
-    out = _session_dir(config, args.out)
-    return run_session(config, out, max_seconds=args.seconds, loop=False, with_worker=not args.no_tracking)
+    out = _session_dir(config, args.out, fresh=args.fresh)
+    return run_session(config, out, max_seconds=args.seconds, loop=False, with_worker=not args.no_tracking,
+                       fresh=args.fresh)
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
@@ -194,6 +220,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--sim-time", action="store_true", help="simulated time: as fast as the CPU allows")
     d.add_argument("--port", type=int, help="zenoh TCP port on 127.0.0.1 (default from the config)")
     d.add_argument("--no-tracking", action="store_true", help="do not start the tracking worker")
+    d.add_argument("--fresh", action="store_true", help=FRESH_HELP)
     d.set_defaults(func=cmd_demo)
 
     r = sub.add_parser("run", help="run the plan of a station config")
@@ -202,6 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--seconds", type=float, help="stop after this much recording")
     r.add_argument("--no-tracking", action="store_true", help="do not start the tracking worker")
     r.add_argument("--connect", action="append", help="zenoh endpoint to connect to, e.g. a zenohd router (repeatable)")
+    r.add_argument("--fresh", action="store_true", help=FRESH_HELP + "; without --out: a new folder")
     r.set_defaults(func=cmd_run)
 
     v = sub.add_parser("validate", help="check a config and the programs it references")

@@ -27,6 +27,7 @@ from drivers.types import RGBDFrame
 from orchestrator import __version__
 from orchestrator.bus import Bus
 from orchestrator.config import Config, ObjectConfig
+from orchestrator.journal import Journal, RunKey, key_fields, now_iso, run_key
 from orchestrator.plan import RunItem, build_plan
 from orchestrator.programs import ProgramRejected, plan_motion
 from orchestrator.progress import Progress
@@ -50,6 +51,12 @@ class SessionSummary:
     keypoints_recorded: int = 0
     runs_done: int = 0
     runs_failed: list[str] = field(default_factory=list)
+    runs_cut_short: list[str] = field(default_factory=list)  # counted in runs_done; not journaled, so re-run
+    runs_planned: int = 0  # run items in one pass over the plan
+    runs_already_done: int = 0  # skipped: done in an earlier session (the journal says so)
+    plan_runs_done: int = 0  # runs of the current pass done by the end, earlier sessions included
+    plan_pass: int = 0
+    journal: str | None = None
     faults_recovered: int = 0
     start_skew_s: float = 0.0  # largest delay between the two arms' motion starts over the runs, s
     errors: list[str] = field(default_factory=list)
@@ -72,11 +79,21 @@ class SessionSummary:
             f"frames dropped   : {self.frames_dropped}",
             f"joint states     : {self.state_samples}",
             f"keypoint sets    : {self.keypoints_recorded}",
-            f"program runs     : {self.runs_done} done, {len(self.runs_failed)} failed",
+            f"program runs     : {self.runs_done} done, {len(self.runs_failed)} failed"
+            + (f" ({len(self.runs_cut_short)} of the done cut short by the stop: re-run from the start on resume)"
+               if self.runs_cut_short else ""),
             f"arm start skew   : {self.start_skew_s * 1e3:.3f} ms (largest over the runs)",
             f"recorded         : {self.recorded_seconds:.1f} s in {self.wall_seconds:.1f} s",
             f"output           : {self.out_dir}",
         ]
+        if self.runs_already_done:
+            lines.append(f"resumed          : {self.runs_already_done} of {self.runs_planned} runs were done "
+                         f"by earlier sessions (journal {self.journal}); not run again")
+        if self.runs_planned:
+            pass_txt = f" (pass {self.plan_pass + 1})" if self.plan_pass else ""
+            lines.append(f"plan progress    : {self.plan_runs_done} of {self.runs_planned} runs done{pass_txt}")
+        for label in self.runs_cut_short:
+            lines.append(f"cut short        : {label}")
         if self.faults_recovered:
             lines.append(f"faults recovered : {self.faults_recovered}")
         if self.stopped_early:
@@ -228,6 +245,7 @@ class Session:
         stop_event: threading.Event | None = None,
         state_rate: float = 250.0,
         on_station: Callable[[Station], None] | None = None,
+        journal: Journal | None = None,
     ) -> None:
         self.config = config
         self.out_dir = Path(out_dir)
@@ -247,47 +265,129 @@ class Session:
         self._last_frame_number: int | None = None
         self._run_info: dict[str, Any] = {}
         self._episode_open = False
+        self._journal = journal  # opened by the caller (the CLI checks it early), else by run(); closed by run()
+        self._pass = 0
+        self._session_index = 0
+        self._session_started = ""
+        self._attempts: dict[RunKey, int] = {}
+        self._attempt = 1
+        self._item_episodes: list[Path] = []
+        self._pending: list[tuple[dict[str, Any], list[Path]]] = []  # "done" records waiting for their files
+        self._done_keys: set[RunKey] = set()
 
     # ------------------------------------------------------------------ public
     def run(self, max_seconds: float | None = None, loop: bool = False) -> SessionSummary:
-        """Run the plan once (or repeatedly with ``loop``) until done, stopped or ``max_seconds`` recorded."""
+        """Run the plan once (or repeatedly with ``loop``) until done, stopped or ``max_seconds`` recorded.
+
+        The folder's journal says which runs earlier sessions finished: those are skipped, the
+        rest run in plan order. Raises JournalError (before touching the folder) for another plan's journal.
+        """
         t_wall = time.monotonic()
         self._max_seconds = max_seconds
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        for path, outcome in recover_active(self.out_dir):
-            self.progress.message(f"found an unfinished episode from an earlier run: {path.name}: {outcome}")
-        self._episode_index = self._next_episode_index()
-        cam = self.config.station.camera
-        self._recorder = Recorder(cam.id, self.config.output.compression)
-        if self.bus is not None:
-            self._frame_key = self.bus.key("cam", cam.id, "frame")
-            self._state_key = self.bus.key("arms", "state")
-            self.bus.subscribe(self.bus.key("keypoints"), callback=self._on_keypoints)
-        items = build_plan(self.config.plan)
+        journal = self._journal
+        if journal is None or journal.closed:
+            journal = self._journal = Journal.open(self.out_dir, self.config)
+        try:
+            for path, outcome in recover_active(self.out_dir):
+                self.progress.message(f"found an unfinished episode from an earlier run: {path.name}: {outcome}")
+            self._episode_index = self._next_episode_index()
+            cam = self.config.station.camera
+            self._recorder = Recorder(cam.id, self.config.output.compression)
+            if self.bus is not None:
+                self._frame_key = self.bus.key("cam", cam.id, "frame")
+                self._state_key = self.bus.key("arms", "state")
+                self.bus.subscribe(self.bus.key("keypoints"), callback=self._on_keypoints)
+            items = build_plan(self.config.plan)
+            self._run_plan(items, journal, loop)
+        finally:
+            self._finish(journal, t_wall)
+        return self.summary
+
+    def _run_plan(self, items: list[RunItem], journal: Journal, loop: bool) -> None:
+        """Run the plan's items the journal does not list as done, pass after pass with ``loop``."""
+        state = journal.state()
+        self._pass, self._attempts, self._done_keys = state.pass_index, dict(state.attempts), set(state.done)
+        self._session_index, self._session_started = state.sessions, now_iso()
+        planned = {run_key(it) for it in items}
+        self.summary.runs_planned = len(items)
+        self.summary.journal = journal.path.name
+        journal.append({"type": "session", "index": self._session_index, "started": self._session_started,
+                        "software": __version__, "runs_planned": len(items), "loop": loop})
+        all_done = planned <= self._done_keys
+        msg = ""
+        if all_done and loop:
+            msg = (f"resuming: pass {self._pass + 1} over the plan is complete ({len(items)} run(s)); "
+                   f"starting pass {self._pass + 2}")
+            self._next_pass()
+        elif all_done:
+            self.summary.runs_already_done = len(items)
+            msg = (f"resuming: all {len(items)} run(s) of the plan are already done in {self.out_dir} "
+                   f"(journal {journal.path.name}); nothing left to do. --fresh records the plan again")
+        elif self._done_keys & planned or state.interrupted & planned:
+            self.summary.runs_already_done = len(self._done_keys & planned)
+            first = next(it for it in items if run_key(it) not in self._done_keys)
+            again = ""
+            if run_key(first) in state.interrupted:
+                again = (f" (attempt {self._attempts.get(run_key(first), 0) + 1}: an earlier attempt was cut short; "
+                         "its episodes stay and this one starts the run over)")
+            msg = (f"resuming: {self.summary.runs_already_done} of {len(items)} runs already done, "
+                   f"continuing with {first.label}{again}")
+        if msg:
+            log.info(msg)
+            self.progress.message(msg)
+        if all_done and not loop:
+            return
         try:
             while not self._should_stop():
-                for _name, group in groupby(items, key=lambda it: it.object.name):
+                todo = [it for it in items if run_key(it) not in self._done_keys]
+                recorded_before = self.summary.recorded_seconds
+                for _name, group in groupby(todo, key=lambda it: it.object.name):
                     if self._should_stop():
                         break
                     self._run_object(list(group))
                 if not loop:
                     break
+                if self.summary.recorded_seconds == recorded_before and not self._should_stop():
+                    self.summary.stopped_early = "a whole pass over the plan recorded nothing"
+                    break
+                if not self._should_stop():
+                    self._next_pass()
         except KeyboardInterrupt:
             self.summary.stopped_early = "interrupted"
+
+    def _next_pass(self) -> None:
+        """Start another pass over the plan (``loop``): every item is to do again, attempts count from 1."""
+        self._flush_pending(final=False)
+        self._pass += 1
+        self._attempts, self._done_keys = {}, set()
+
+    def _finish(self, journal: Journal, t_wall: float) -> None:
+        """Finish the episodes, journal the runs whose files are now final, fill and write the summary."""
+        try:
+            if self._recorder is not None:
+                self._recorder.stop()
+                self._flush_pending(final=True)
+                self.summary.episodes = sorted(self._recorder.finished)
+                self.summary.keypoints_recorded = self._recorder.keypoints_written
+                self.summary.errors.extend(self._recorder.errors)
         finally:
-            self._recorder.stop()
-            self.summary.episodes = sorted(self._recorder.finished)
-            self.summary.keypoints_recorded = self._recorder.keypoints_written
-            self.summary.errors.extend(self._recorder.errors)
-            self.summary.wall_seconds = time.monotonic() - t_wall
-            self.progress.done()
-            (self.out_dir / "summary.json").write_text(json.dumps(self.summary.to_dict(), indent=2))
-        return self.summary
+            journal.close()
+        planned = {run_key(it) for it in build_plan(self.config.plan)}
+        self.summary.plan_runs_done = len(self._done_keys & planned)
+        self.summary.plan_pass = self._pass
+        self.summary.wall_seconds = time.monotonic() - t_wall
+        self.progress.done()
+        (self.out_dir / "summary.json").write_text(json.dumps(self.summary.to_dict(), indent=2))
 
     # ------------------------------------------------------------------ internals
     def _next_episode_index(self) -> int:
-        """Continue numbering after the episodes already in the folder (a resumed session)."""
-        idx = [int(p.name.split("_")[1].split(".")[0]) for p in self.out_dir.glob("episode_*.mcap")]
+        """Continue numbering after the episodes already in the folder or its quarantine (a resumed session)."""
+        idx = []
+        for p in [*self.out_dir.glob("episode_*.mcap*"), *self.out_dir.glob("quarantine/episode_*.mcap*")]:
+            number = p.name.split("_")[1].split(".")[0]
+            if number.isdigit():
+                idx.append(int(number))
         return max(idx) + 1 if idx else 0
 
     def _should_stop(self) -> bool:
@@ -316,6 +416,8 @@ class Session:
             self.summary.errors.append(f"{obj.name}: station not ready: {e}")
             self.progress.message(f"error: {obj.name}: {e}")
             station.close()
+            for item in items:  # journaled so the record says why; retried on resume like a failed run
+                self._journal_run(item, "skipped", f"station not ready: {e}", [], 0.0)
             return
         try:
             if self.on_station is not None:
@@ -324,22 +426,84 @@ class Session:
                 if self._should_stop():
                     break
                 if station.broken:
-                    self.summary.runs_failed.append(
-                        f"{item.label}: skipped, the station needs attention ({station.broken})"
-                    )
+                    reason = f"skipped, the station needs attention ({station.broken})"
+                    self.summary.runs_failed.append(f"{item.label}: {reason}")
+                    self._journal_run(item, "skipped", reason, [], 0.0)
                     continue
-                self._run_item_with_retries(item, station)
+                self._run_journaled(item, station)
         finally:
             station.close()
 
-    def _run_item_with_retries(self, item: RunItem, station: Station, retries: int = 2) -> None:
-        """Run an item; after a recoverable fault, recover and retry the faulted segment at slow speed."""
+    def _run_journaled(self, item: RunItem, station: Station) -> None:
+        """Run an item between a ``start`` and a ``run`` journal record (none when a stop cuts it short)."""
+        key = run_key(item)
+        self._flush_pending(final=False)
+        self._attempt = self._attempts.get(key, 0) + 1
+        self._attempts[key] = self._attempt
+        assert self._journal is not None
+        self._journal.append({
+            "type": "start", "pass": self._pass, **key_fields(key), "attempt": self._attempt,
+            "session": self._session_index, "first_episode": self._episode_index, "started": now_iso(),
+        })
+        self._item_episodes = []
+        t0 = time.monotonic()
+        outcome, reason = self._run_item_with_retries(item, station)
+        episodes, wall = list(self._item_episodes), time.monotonic() - t0
+        if outcome == "stopped":
+            self.summary.runs_cut_short.append(
+                f"{item.label}: stopped after {len(episodes)} episode(s); runs again from its start on resume"
+            )
+        elif outcome == "done":  # journaled once its files are final (the recorder closes them behind capture)
+            self._done_keys.add(key)
+            self._pending.append((self._run_record(item, "done", None, episodes, wall), episodes))
+        else:
+            self._journal_run(item, outcome, reason, episodes, wall)
+
+    def _run_record(
+        self, item: RunItem, outcome: str, reason: str | None, episodes: list[Path], wall: float
+    ) -> dict[str, Any]:
+        """The ``run`` journal record of a finished item."""
+        return {
+            "type": "run", "pass": self._pass, **key_fields(run_key(item)), "outcome": outcome,
+            "reason": reason, "attempt": self._attempts.get(run_key(item), 0), "session": self._session_index,
+            "episodes": [p.name for p in episodes], "wall_seconds": round(wall, 3), "finished": now_iso(),
+        }
+
+    def _journal_run(self, item: RunItem, outcome: str, reason: str | None, episodes: list[Path],
+                     wall: float) -> None:
+        """Journal a failed or skipped item now (it is retried on resume whatever its files' state)."""
+        assert self._journal is not None
+        self._journal.append(self._run_record(item, outcome, reason, episodes, wall))
+
+    def _flush_pending(self, final: bool) -> None:
+        """Journal the "done" runs whose episode files are all final; with ``final``, the rest as failed."""
+        if not self._pending or self._recorder is None or self._journal is None:
+            return
+        finished = set(self._recorder.finished)
+        keep = []
+        for record, episodes in self._pending:
+            missing = [p.name for p in episodes if p not in finished]
+            if not missing:
+                self._journal.append(record)
+            elif final:
+                self._journal.append({**record, "outcome": "failed",
+                                      "reason": f"episode file(s) not finished: {', '.join(missing)}"})
+                self._done_keys.discard(_record_key(record))
+            else:
+                keep.append((record, episodes))
+        self._pending = keep
+
+    def _run_item_with_retries(self, item: RunItem, station: Station, retries: int = 2) -> tuple[str, str | None]:
+        """Run an item; after a recoverable fault, recover and retry the faulted segment at slow speed.
+
+        Returns ("done" | "stopped" | "failed", the failure message or None).
+        """
         resume = _Resume()
         for attempt in range(retries + 1):
             try:
-                self._run_item(item, station, resume)
+                complete = self._run_item(item, station, resume)
                 self.summary.runs_done += 1
-                return
+                return ("done", None) if complete else ("stopped", None)
             except DeviceError as e:
                 msg = f"{item.label}: device fault: {e}"
                 log.warning(msg)
@@ -349,13 +513,13 @@ class Session:
                     self.summary.runs_failed.append(msg)
                     if not e.recoverable:
                         station.broken = str(e)
-                    return
+                    return "failed", msg
                 try:
                     self._recover(station)
                 except DeviceError as e2:
                     self.summary.runs_failed.append(f"{msg}; recovery failed: {e2}")
                     station.broken = f"recovery failed: {e2}"
-                    return
+                    return "failed", f"{msg}; recovery failed: {e2}"
                 self.summary.faults_recovered += 1
                 self.progress.message(
                     f"recovered; retrying from waypoint {resume.waypoint} (approach at slow speed)"
@@ -363,7 +527,8 @@ class Session:
             except ProgramRejected as e:
                 self.summary.runs_failed.append(f"{item.label}: {e}")
                 self.progress.message(f"error: {item.label}: {e}")
-                return
+                return "failed", f"{item.label}: {e}"
+        return "failed", f"{item.label}: no attempt left"  # not reached: the last attempt returns above
 
     @staticmethod
     def _stop_arms(station: Station) -> None:
@@ -403,9 +568,10 @@ class Session:
         except DeviceError as e:
             raise DeviceError(f"camera: no frame after {retries} attempts and a reconnect: {last}; {e}") from e
 
-    def _run_item(self, item: RunItem, station: Station, resume: _Resume) -> None:
+    def _run_item(self, item: RunItem, station: Station, resume: _Resume) -> bool:
         """Record one program run (from ``resume.waypoint`` after a fault) as whole episodes.
 
+        Returns False when a stop (signal, ``max_seconds``, low disk) cut the run short.
         On a DeviceError, ``resume`` is updated with the waypoint to retry from and the next chunk index.
         """
         assert self._recorder is not None
@@ -419,6 +585,7 @@ class Session:
         t_start: float | None = None
         chunk = resume.chunk - 1
         episode_frames = 0
+        frames = 0
         base_meta = self._base_metadata(item, station, motion)
         base_meta["start_waypoint"] = resume.waypoint
         self._last_frame_number = None  # frames the camera made between runs were not meant to be recorded
@@ -455,6 +622,7 @@ class Session:
                 frame = self._read_frame(station)
                 self._record_frame(frame, station)
                 episode_frames += 1
+                frames += 1
                 self.summary.recorded_seconds += 1.0 / fps
                 if t_start is not None:  # a fault shows in the episode holding the frame it happened in
                     for arm in station.arms.values():
@@ -476,6 +644,7 @@ class Session:
             else:
                 for arm in station.arms.values():
                     arm.stop()
+            return frames == total
         except DeviceError:
             self._close_episode(station, False, fault=True)
             resume.chunk = chunk + 1
@@ -518,8 +687,10 @@ class Session:
                 f"only {free_gb:.1f} GiB free in {self.out_dir} (output.min_free_gb = {self.config.output.min_free_gb})"
             )
             return
+        self._flush_pending(final=False)
         path = self.out_dir / f"episode_{self._episode_index:06d}.mcap"
         self._recorder.open_episode(path, {**meta, "episode_index": self._episode_index})
+        self._item_episodes.append(path)
         self._episode_index += 1
         self._episode_open = True
 
@@ -542,6 +713,9 @@ class Session:
             "speed": item.speed,
             "repeat": item.repeat,
             "run_index": item.index,
+            "attempt": self._attempt,  # 1 + earlier starts of this run in this plan pass (journal)
+            "plan_pass": self._pass,
+            "session_started": self._session_started,  # UTC: tells a re-run's episodes from the cut-short ones
             "fps": station.fps,
             "episode_seconds": self.config.plan.episode_seconds,
             "segments": motion.segment_report,
@@ -558,3 +732,8 @@ class Session:
                 "u (12,) = [left TCP xyz m, left rotvec rad, right TCP xyz m, right rotvec rad], world frame"
             ),
         }
+
+
+def _record_key(record: dict[str, Any]) -> RunKey:
+    """The run key of a journal record this session wrote."""
+    return (record["object"], record["program"], record["speed"], record["repeat"])
