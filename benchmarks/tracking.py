@@ -285,10 +285,11 @@ def init_consistency(
 
     For each seed the frames the pipeline would use are rendered: D0 at rest, the three recent
     references (every ``reference_gap`` frames before D1) and D1 at ``at_s`` s into the motion;
-    the pipeline's initialisation step (difference segmentation, then ``Tracker.initialise`` with
-    the TCPs and grasp flags) runs on them; an initialisation leaving a closed gripper without a
-    keypoint (which the pipeline rejects) counts as a failure. Spread per keypoint over the seeds: RMS distance to
-    the mean position ("std") and the largest distance ("maxdev"); the maximum over keypoints.
+    the pipeline's initialisation step (difference segmentation, the cloud refined at full
+    resolution, then ``Tracker.initialise`` with the TCPs and grasp flags) runs on them; an
+    initialisation leaving a closed gripper without a keypoint (which the pipeline rejects) counts
+    as a failure. Spread per keypoint over the seeds: RMS distance to the mean position ("std") and
+    the largest distance ("maxdev"); the maximum over keypoints.
     """
     inits, failures = [], 0
     cfg0 = station_config(width, height)
@@ -302,9 +303,12 @@ def init_consistency(
         pipe = LivePipeline(params_for(cfg, obj), seq.K, seq.T_world_cam, KIND.get(obj.category))
         V, F, tcp, closed = ArmModel(seq.bases).from_state(seq.frames[-1].state)
         d = [pipe.decimate(f.depth.astype(np.float32) * np.float32(1e-3)) for f in seq.frames]
-        seg = pipe.segment_initial(np.stack(d[:-1]), d[-1], pipe.arm_mask(d[-1], V, F))
+        pipe.set_reference(d[0])
+        arm = pipe.arm_mask(d[-1], V, F)
+        seg = pipe.segment_initial(np.stack(d[:-1]), d[-1], arm)
+        cloud = pipe.refine(seq.frames[-1].depth.astype(np.float32) * np.float32(1e-3), seg.points, arm)
         try:
-            ini, _ = pipe.tracker.initialise(seg.points, tcp=tcp, kind=pipe.kind, gripper_closed=closed)
+            ini, _ = pipe.tracker.initialise(cloud, tcp=tcp, kind=pipe.kind, gripper_closed=closed)
         except InitialisationError:
             failures += 1
             continue

@@ -162,3 +162,17 @@ def test_savgol_quadratic_matches_scipy() -> None:
     p = np.random.default_rng(3).normal(size=(90, 3)).cumsum(axis=0)
     for w in (5, 31, 89):
         np.testing.assert_allclose(_savgol_quadratic(p, w), savgol_filter(p, w, 2, axis=0, mode="interp"), atol=1e-9)
+
+
+def test_leaf_on_axis_removes_the_skeleton_tips_lateral_offset() -> None:
+    from tracking.anchors import _leaf_on_axis
+
+    x = np.linspace(0.0, 0.06, 31)
+    poly = np.stack([x, np.zeros_like(x), np.zeros_like(x)], axis=1)
+    poly[0, 1] = 0.004  # the skeleton's last pixel off the tube's axis
+    leaf, inner = _leaf_on_axis(poly, 0.025)
+    assert abs(leaf[1]) < 5e-4 and abs(leaf[0]) < 1e-3
+    assert inner[0] > leaf[0]  # further in along the branch
+    short = poly[:3]
+    leaf2, _ = _leaf_on_axis(short, 0.025)
+    np.testing.assert_array_equal(leaf2, short[0])  # too short to fit: left alone

@@ -116,3 +116,73 @@ def test_growth_stops_at_the_depth_step_behind_an_outline():
     sheet = np.zeros(depth.shape, bool)
     sheet[10:30, 10:40] = True
     assert (grown == sheet).all()
+
+
+def _lying_rope(length: float = 0.3, radius: float = 0.007) -> tuple[np.ndarray, S.Mesh]:
+    """A straight rope lying on the table along x: centreline (M, 3) m at height radius, and its mesh."""
+    c = np.stack([np.linspace(-length / 2, length / 2, 121), np.zeros(121), np.full(121, radius)], axis=1)
+    return c, S.tube_mesh(c, radius)
+
+
+def test_support_plane_is_the_table(cam):
+    from tracking.segmentation import support_plane
+
+    K, T = cam
+    rng = np.random.default_rng(0)
+    box = S.box_mesh(np.array([0.1, 0.1, 0.1]), np.array([0.2, 0.2, 0.2]))
+    depth = S.render_depth([S.table_mesh(), box], K, T, (H, W), rng=rng)
+    plane = support_plane(depth, K, T, P)
+    assert plane is not None
+    n, off = plane
+    assert abs(n[2]) > 0.999 and n[2] > 0  # the table's normal, towards the camera (above the table)
+    assert abs(off) < 2e-3
+    # no plane holds this share of the pixels: no support, no height test
+    strict = TrackingParams(attach_plane_min_fraction=0.999, attach_plane_tol_m=0.0005)
+    assert support_plane(depth, K, T, strict) is None
+
+
+def test_attached_growth_completes_an_unmoved_end_lying_on_the_table(cam):
+    from tracking.segmentation import Segmentation, grow_attached_tubes, support_plane, voxel_downsample
+
+    K, T = cam
+    rng = np.random.default_rng(1)
+    c, rope = _lying_rope()
+    table = S.render_depth([S.table_mesh()], K, T, (H, W), rng=rng)
+    depth = S.render_depth([S.table_mesh(), rope], K, T, (H, W), rng=rng)
+    on_rope = S.render_depth([rope], K, T, (H, W)) > 0
+    pts, _ = depth_to_points(depth, K, T, on_rope)
+    pts = pts[pts[:, 2] > 0.004]  # the rope's upper part, as differencing sees it
+    moved = voxel_downsample(pts[pts[:, 0] < 0.15 - 0.025], P.voxel_m)  # the last 2.5 cm did not move
+    seg = Segmentation(moved, len(moved), 1)
+    out = grow_attached_tubes(depth, seg, K, T, P, None, support_plane(table, K, T, P))
+    assert len(out.points) > len(moved)
+    np.testing.assert_array_equal(out.points[: len(moved)], moved)  # what was there stays
+    added = out.points[len(moved):]
+    assert added[:, 0].max() > 0.15 - 0.005  # the end is reached
+    d, _ = cKDTree(c).query(added)
+    assert (d < 0.007 + 0.004).all()  # rope only: none of the table around it
+    # the same end without the table plane cannot be told from the table: nothing is taken from it
+    bare = grow_attached_tubes(depth, seg, K, T, P, None, None)
+    d, _ = cKDTree(c).query(bare.points[len(moved):])
+    assert (d < 0.011).all()
+
+
+def test_refined_cloud_is_relifted_at_full_resolution(cam):
+    from tracking.geometry import decimated_intrinsics
+    from tracking.segmentation import refine_object_cloud, voxel_downsample
+
+    K, T = cam
+    rng = np.random.default_rng(2)
+    c, rope = _lying_rope()
+    depth = S.render_depth([S.table_mesh(), rope], K, T, (H, W), rng=rng)
+    on_rope = S.render_depth([rope], K, T, (H, W)) > 0
+    s = 4
+    Kd = decimated_intrinsics(K, s)
+    coarse_pts, _ = depth_to_points(depth[::s, ::s], Kd, T, on_rope[::s, ::s])
+    coarse = voxel_downsample(coarse_pts, P.voxel_m)
+    fine = refine_object_cloud(depth, coarse, K, T, P)
+    assert len(fine) > 1.5 * len(coarse)
+    d, _ = cKDTree(coarse).query(fine)
+    assert d.max() <= 1.5 * P.voxel_m  # nothing far from the segmented object comes in
+    skin = np.abs(cKDTree(c).query(fine)[0] - 0.007)
+    assert np.percentile(skin, 95) < 0.003

@@ -96,8 +96,32 @@ def _smooth_polyline(p: np.ndarray, window: int) -> np.ndarray:
     return out
 
 
+def _leaf_on_axis(poly: np.ndarray, length_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """A leaf (poly[0]) moved onto the axis of its branch's end, and a point further in on that axis.
+
+    poly: (M, 3) m, the branch polyline starting at the leaf. A line is fitted to the polyline from
+    a fifth of ``length_m`` to ``length_m`` of arc from the leaf; the leaf goes to its foot on that
+    line (the skeleton's last pixel sits off the tube's axis by up to a radius, differently from one
+    capture to the next).
+    Returns (leaf (3,), inner (3,)); the polyline itself when it is too short to fit.
+    """
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poly, axis=0), axis=1))])
+    seg = poly[(arc >= 0.2 * length_m) & (arc <= length_m)]  # the last pixels themselves are the doubt
+    if len(seg) < 3 or arc[-1] < 0.5 * length_m:
+        return poly[0], poly[min(len(poly) - 1, max(1, int(np.searchsorted(arc, length_m)) - 1))]
+    c = seg.mean(axis=0)
+    d = np.linalg.svd(seg - c, full_matrices=False)[2][0]
+    if (poly[0] - c) @ d < 0:
+        d = -d  # towards the leaf
+    leaf = c + float((poly[0] - c) @ d) * d
+    return leaf, c
+
+
 def _extend_leaf(leaf: np.ndarray, inward: np.ndarray, tree: cKDTree, cloud: np.ndarray, reach: float) -> np.ndarray:
-    """Push a leaf (3,) m outward along -inward direction to the cloud's tip within ``reach`` m."""
+    """Push a leaf (3,) m outward along the branch (inward -> leaf) to the cloud's tip within ``reach`` m.
+
+    The leaf moves along that line only, by the mean reach of the cloud points within 4 mm of the
+    farthest one: the lateral place of those 1-3 points is noise (5 mm spread over camera seeds)."""
     t = leaf - inward
     n = np.linalg.norm(t)
     if n < 1e-9:
@@ -113,7 +137,7 @@ def _extend_leaf(leaf: np.ndarray, inward: np.ndarray, tree: cKDTree, cloud: np.
     if not ok.any():
         return leaf
     tip = ok & (s > s[ok].max() - 0.004)
-    return cloud[idx][tip].mean(axis=0)
+    return leaf + float(s[tip].mean()) * t  # along the branch only: the few tip points' lateral spread is noise
 
 
 def skeleton_3d(
@@ -152,9 +176,10 @@ def skeleton_3d(
     tree = cKDTree(cloud)
     ext = nodes.copy()
     for a, b, poly in polys:
-        for end, inner in ((a, poly[min(len(poly) - 1, win)]), (b, poly[max(0, len(poly) - 1 - win)])):
+        for end, from_end in ((a, poly), (b, poly[::-1])):
             if kinds[end] == LEAF:
-                ext[end] = _extend_leaf(nodes[end], inner, tree, cloud, params.end_extend_m)
+                leaf, inner = _leaf_on_axis(from_end, params.end_axis_m)
+                ext[end] = _extend_leaf(leaf, inner, tree, cloud, params.end_extend_m)
     out = []
     for a, b, poly in polys:
         poly = poly.copy()

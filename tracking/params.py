@@ -29,6 +29,13 @@ class TrackingParams:
         fraction of the largest and within this gap of it (an object split by a gripper), m.
       grow_step_m: the initial (difference) segmentation grows over changed pixels reachable from
         the object through depth steps of at most this between neighbouring pixels (0: no growth), m.
+      attach_reach_m, attach_step_m, attach_max_spread_m: a 1D object's difference cloud is completed
+        with the pixels within this reach of it, m, that belong to it though they did not move: those
+        standing at least attach_min_height_m (m) above the table (the reference's dominant plane:
+        attach_plane_min_fraction of its pixels within attach_plane_tol_m, m; without one, no
+        height test) and reachable through depth steps of at most attach_step_m between
+        neighbouring pixels, m; each added part must be thin (lateral spread at most
+        attach_max_spread_m, m). An end dragged along the table (reach 0: off).
       track_gate_m: in tracking, a cluster is kept if some point lies within this of the previous keypoints, m.
       background_object_gap_m: a farther reading is absorbed into the background only if its 3D
         point lies more than this from the tracked object (last cloud, keypoint edges): else it is
@@ -45,6 +52,7 @@ class TrackingParams:
       lift_radius_px, lift_k: skeleton pixels are lifted as the median of up to k cloud points
         projected within this radius, px (mask pixels).
       end_extend_m: leaf anchors are pushed along the branch tangent to the cloud's tip within this, m.
+      end_axis_m: a leaf is first put on the axis of its branch, a line fitted over this much of it, m.
     1D initialisation
       n_keypoints_1d: total keypoints of a 1D object (anchors included).
     2D initialisation
@@ -90,6 +98,12 @@ class TrackingParams:
     cluster_keep_fraction: float = 0.05
     cluster_keep_gap_m: float = 0.08
     grow_step_m: float = 0.02
+    attach_reach_m: float = 0.03
+    attach_max_spread_m: float = 0.008
+    attach_step_m: float = 0.01
+    attach_plane_tol_m: float = 0.004
+    attach_plane_min_fraction: float = 0.3
+    attach_min_height_m: float = 0.005
     track_gate_m: float = 0.05
     background_object_gap_m: float = 0.015
 
@@ -105,6 +119,7 @@ class TrackingParams:
     lift_radius_px: float = 3.0
     lift_k: int = 8
     end_extend_m: float = 0.03
+    end_axis_m: float = 0.025
 
     n_keypoints_1d: int = 25
     grid_rows: int = 6

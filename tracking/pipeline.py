@@ -24,9 +24,12 @@ from tracking.segmentation import (
     Segmentation,
     background_from_depths,
     behind_near_object,
+    grow_attached_tubes,
+    refine_object_cloud,
     render_arm_mask,
     segment_against_background,
     segment_by_difference,
+    support_plane,
     update_background,
 )
 from tracking.tracker import Tracker, TrackStatus
@@ -132,6 +135,7 @@ class LivePipeline:
         """Forget everything: the next frame becomes the reference D0."""
         self.tracker.reset()
         self._d0: np.ndarray | None = None
+        self._support: tuple[np.ndarray, float] | None = None  # the table plane in D0 (normal, offset m)
         self._recent: deque[np.ndarray] = deque(maxlen=3)
         self._since_recent = 0
         self._sizes: deque[int] = deque(maxlen=self.init_stable_frames + 1)
@@ -179,14 +183,14 @@ class LivePipeline:
         """One frame: depth (H, W) float32 m; both arms as one mesh (V, 3) m world + (F, 3) int;
         tcp (G, 3) m world and gripper_closed (G,) bool of the grippers (G = 2: left, right)."""
         t0 = time.perf_counter()
-        depth = self.decimate(depth)
+        full, depth = depth, self.decimate(depth)
         arm = self.arm_mask(depth, arm_vertices, arm_triangles)
         self._timings = {"arm": 1e3 * (time.perf_counter() - t0)}
         if self._d0 is None:
-            self._d0 = depth
+            self.set_reference(depth)
             out = self._empty("reference")
         elif not self.tracker.initialised:
-            out = self._try_initialise(depth, arm, tcp, gripper_closed)
+            out = self._try_initialise(depth, arm, tcp, gripper_closed, full)
         else:
             out = self._track(depth, arm, tcp, gripper_closed)
         self._prev = depth
@@ -199,15 +203,30 @@ class LivePipeline:
         A 2D object (``kind`` "2d", or classified so from its "appeared" cloud when unknown) is grown
         over the changed pixels depth-continuous with it (``segment_by_difference(grow=True)``): a
         cloth pulled back lies behind its old positions and differencing alone misses most of it.
+        A 1D object gets its thin parts that did not move (``grow_attached_tubes``): a hanging end.
         """
         p = self.seg_params
-        grow = self.kind == "2d"
-        if self.kind is None:
-            seg = segment_by_difference(refs, depth, self.K_seg, self.T, p, arm)
-            if len(seg.points) < self.params.min_object_points or classify_object(seg.points, p).kind != "2d":
-                return seg
-            grow = True
-        return segment_by_difference(refs, depth, self.K_seg, self.T, p, arm, grow=grow)
+        if self.kind == "2d":
+            return segment_by_difference(refs, depth, self.K_seg, self.T, p, arm, grow=True)
+        seg = segment_by_difference(refs, depth, self.K_seg, self.T, p, arm)
+        if len(seg.points) < self.params.min_object_points:
+            return seg
+        if self.kind is None and classify_object(seg.points, p).kind == "2d":
+            return segment_by_difference(refs, depth, self.K_seg, self.T, p, arm, grow=True)
+        return grow_attached_tubes(depth, seg, self.K_seg, self.T, p, arm, self._support)
+
+    def refine(self, depth: np.ndarray, cloud: np.ndarray, arm: np.ndarray | None) -> np.ndarray:
+        """The initial object cloud (N, 3) m re-lifted from the full-resolution depth (H, W) m
+        (``refine_object_cloud``; arm: decimated arm mask): initialisation runs on it, once."""
+        if self.stride == 1:
+            return cloud
+        return refine_object_cloud(np.asarray(depth, np.float32), cloud, self.K, self.T, self.params, arm)
+
+    def set_reference(self, depth: np.ndarray) -> None:
+        """Make a decimated depth (h, w) m the reference D0 (and find the table plane in it: a 1D
+        object's parts that did not move stand above it); ``process`` does this on its first frame."""
+        self._d0 = depth
+        self._support = support_plane(depth, self.K_seg, self.T, self.seg_params)
 
     # ---------------------------------------------------------------- internals
     def _empty(self, status: str, n_points: int = 0, note: str = "") -> PipelineOutput:
@@ -232,7 +251,8 @@ class LivePipeline:
         return len(self._sizes) < self._sizes.maxlen or n > (1.0 + self.init_max_growth) * self._sizes[0]
 
     def _try_initialise(
-        self, depth: np.ndarray, arm: np.ndarray | None, tcp: np.ndarray | None, closed: np.ndarray | None
+        self, depth: np.ndarray, arm: np.ndarray | None, tcp: np.ndarray | None, closed: np.ndarray | None,
+        full: np.ndarray,
     ) -> PipelineOutput:
         refs = self._references()
         t0 = time.perf_counter()
@@ -243,8 +263,9 @@ class LivePipeline:
         n = len(seg.points)
         if self._growing(n) or n < self.min_init_points:
             return self._empty("waiting", n, "waiting for the arms to move the object")
+        cloud = self.refine(full, seg.points, arm)
         try:
-            ini, res = self.tracker.initialise(seg.points, tcp=tcp, kind=self.kind, gripper_closed=closed)
+            ini, res = self.tracker.initialise(cloud, tcp=tcp, kind=self.kind, gripper_closed=closed)
         except InitialisationError as e:
             self.init_failures += 1
             self.last_init_error = str(e)
@@ -287,7 +308,7 @@ class LivePipeline:
         self._remember(depth)
         if res.status == TrackStatus.LOST:
             # back to waiting: the recent frames (object elsewhere) become the references
-            self._d0 = self._recent[0] if self._recent else depth
+            self.set_reference(self._recent[0] if self._recent else depth)
             self._recent.clear()
             self._sizes.clear()
             out = self._output("lost", res, seg.points)

@@ -338,6 +338,155 @@ def segment_by_difference(
     return _cluster(depth1, grown | (appeared & seeds), K, T_world_cam, params, None)
 
 
+def support_plane(
+    depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, params: TrackingParams, n_points: int = 4000,
+    n_hypotheses: int = 200,
+) -> tuple[np.ndarray, float] | None:
+    """The scene's dominant plane (the table) in a depth image (H, W) m by RANSAC, refined by least squares.
+
+    Returns (unit normal (3,) world, offset m) with x @ normal = offset on the plane and the camera
+    on its positive side, or None when under ``attach_plane_min_fraction`` of the sampled pixels lie
+    within ``attach_plane_tol_m`` of the best plane. Sampling is seeded (``params.seed``).
+    """
+    pts, _ = depth_to_points(depth, K, T_world_cam, valid_depth(depth, params))
+    if len(pts) < 50:
+        return None
+    rng = np.random.default_rng(params.seed)
+    P = pts[rng.choice(len(pts), min(n_points, len(pts)), replace=False)]
+    tri = P[rng.integers(0, len(P), (n_hypotheses, 3))]
+    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    ln = np.linalg.norm(nrm, axis=1)
+    good = ln > 1e-9
+    if not good.any():
+        return None
+    nrm = nrm[good] / ln[good, None]
+    off = np.einsum("hi,hi->h", nrm, tri[good, 0])
+    tol = params.attach_plane_tol_m
+    score = (np.abs(P @ nrm.T - off) <= tol).sum(axis=0)  # (hypotheses,)
+    best = int(np.argmax(score))
+    inl = np.abs(P @ nrm[best] - off[best]) <= tol
+    if inl.mean() < params.attach_plane_min_fraction:
+        return None
+    c = P[inl].mean(axis=0)
+    n = np.linalg.svd(P[inl] - c, full_matrices=False)[2][2]
+    o = float(c @ n)
+    if T_world_cam[:3, 3] @ n < o:
+        n, o = -n, -o
+    return n, o
+
+
+def grow_attached_tubes(
+    depth1: np.ndarray,
+    seg: Segmentation,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    params: TrackingParams,
+    arm_mask: np.ndarray | None = None,
+    support: tuple[np.ndarray, float] | None = None,
+) -> Segmentation:
+    """A 1D object's difference segmentation completed with its parts that did not move.
+
+    depth1: (H, W) float m; seg: ``segment_by_difference`` of it. An end that barely moved between
+    the references and depth1 (a free branch dragged along the table) changes its depth by less
+    than the noise threshold and is missing from the difference cloud, by an amount that varies
+    with the noise (0-15 mm short over camera seeds). Pixels within ``attach_reach_m`` of the cloud
+    (3D), standing at least ``attach_min_height_m`` above the ``support`` plane (normal (3,), offset
+    m, camera side positive: ``support_plane`` of the reference, the table; a rope 14 mm thick
+    meets the table without a depth step, so continuity alone cannot separate them) and reachable
+    from the object's pixels over a depth-continuous surface (``grow_depth_region``, step
+    ``attach_step_m``) are added, when each added connected part is thin (lateral spread, the square
+    root of its second PCA eigenvalue, at most ``attach_max_spread_m``): the rest of a tube, not a
+    patch of surface. Returns a new Segmentation (the input when nothing is added or the reach is 0).
+    """
+    reach = params.attach_reach_m
+    if reach <= 0 or len(seg.points) == 0:
+        return seg
+    H, W = depth1.shape
+    uv, z = project_points(seg.points, K, T_world_cam)
+    rc = np.rint(uv[:, ::-1]).astype(np.int64)
+    ok = (rc[:, 0] >= 0) & (rc[:, 0] < H) & (rc[:, 1] >= 0) & (rc[:, 1] < W)
+    seeds = np.zeros((H, W), bool)
+    seeds[rc[ok, 0], rc[ok, 1]] = True
+    # the object's pixels: the projected voxels dilated to the voxel's footprint
+    px_m = float(np.median(z)) / float(K[0, 0])
+    vox_px = max(1, int(np.ceil(params.voxel_m / px_m)))
+    obj = cv2.dilate(seeds.astype(np.uint8), np.ones((vox_px, vox_px), np.uint8)).astype(bool)
+    r_px = int(np.ceil(reach / px_m))
+    near = cv2.dilate(obj.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r_px + 1,) * 2))
+    zone = near.astype(bool) & valid_depth(depth1, params) & ~obj
+    if arm_mask is not None:
+        zone &= ~arm_mask
+    zp, zpix = depth_to_points(depth1, K, T_world_cam, zone)
+    d, _ = cKDTree(seg.points).query(zp, distance_upper_bound=reach)
+    ok = np.isfinite(d)
+    if support is not None:
+        ok &= zp @ support[0] - support[1] >= params.attach_min_height_m
+    zpix = zpix[ok]
+    if len(zpix) == 0:
+        return seg
+    cand = np.zeros((H, W), bool)
+    cand[zpix[:, 0], zpix[:, 1]] = True
+    grown = grow_depth_region(depth1, obj, obj | cand, params.attach_step_m) & cand
+    if not grown.any():
+        return seg
+    _, lab = cv2.connectedComponents(grown.astype(np.uint8), connectivity=8)
+    pts, pix = depth_to_points(depth1, K, T_world_cam, grown)
+    comp = lab[pix[:, 0], pix[:, 1]]
+    accepted = np.zeros(len(pts), bool)
+    for c in np.unique(comp):
+        m = comp == c
+        if m.sum() < 3:
+            continue
+        q = pts[m] - pts[m].mean(axis=0)
+        ev = np.linalg.eigvalsh(q.T @ q / len(q))  # ascending
+        if np.sqrt(max(ev[1], 0.0)) <= params.attach_max_spread_m:
+            accepted |= m
+    if not accepted.any():
+        return seg
+    extra = voxel_downsample(pts[accepted], params.voxel_m)
+    d, _ = cKDTree(seg.points).query(extra, distance_upper_bound=0.5 * params.voxel_m)
+    extra = extra[~np.isfinite(d)]  # voxels the difference cloud already has stay as they were
+    return Segmentation(np.concatenate([seg.points, extra]), seg.n_foreground + int(accepted.sum()), seg.n_clusters)
+
+
+def refine_object_cloud(
+    depth: np.ndarray,
+    cloud: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    params: TrackingParams,
+    arm_mask: np.ndarray | None = None,
+) -> np.ndarray:
+    """An object's cloud (N, 3) m segmented on a decimated depth, re-lifted from the full-resolution
+    depth (H, W) m (camera matrix K (3, 3) of that resolution) and voxelised again, (M, 3) m.
+
+    On a decimated image a rope is 3 pixels wide: every voxel holds one reading, so the cloud's
+    points sit on the decimated pixel rays and its skeleton jumps by a whole pixel (5 mm) between
+    captures. Every full-resolution pixel within a voxel's footprint of the cloud's projection and
+    within ``voxel_m`` of it in 3D is lifted (not in ``arm_mask``, (H, W) bool or decimated, resized)
+    and voxel-averaged: ~10 readings a voxel, so its centroid is steady to the noise's tenth.
+    """
+    if len(cloud) == 0:
+        return cloud
+    H, W = depth.shape
+    uv, z = project_points(cloud, K, T_world_cam)
+    rc = np.rint(uv[:, ::-1]).astype(np.int64)
+    ok = (rc[:, 0] >= 0) & (rc[:, 0] < H) & (rc[:, 1] >= 0) & (rc[:, 1] < W)
+    mask = np.zeros((H, W), np.uint8)
+    mask[rc[ok, 0], rc[ok, 1]] = 1
+    r = max(1, int(np.ceil(params.voxel_m * float(K[0, 0]) / float(np.median(z)))))
+    mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)).astype(bool)
+    mask &= valid_depth(depth, params)
+    if arm_mask is not None:
+        if arm_mask.shape != (H, W):
+            arm_mask = cv2.resize(arm_mask.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
+        mask &= ~arm_mask
+    pts, _ = depth_to_points(depth, K, T_world_cam, mask)
+    d, _ = cKDTree(cloud).query(pts, distance_upper_bound=params.voxel_m)
+    pts = pts[np.isfinite(d)]
+    return voxel_downsample(pts, params.voxel_m) if len(pts) else cloud
+
+
 def background_from_depths(depths: np.ndarray) -> np.ndarray:
     """Static background (H, W) float32 metres: per-pixel median of (K, H, W) depths ignoring zeros."""
     d = np.asarray(depths, np.float32)
