@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from orchestrator.config import Config
+from orchestrator.fsutil import fsync_dir
 from orchestrator.plan import RunItem, build_plan
 
 log = logging.getLogger(__name__)
@@ -231,7 +232,7 @@ class Journal:
                     "created": now_iso(),
                 }
                 journal._write(journal.header)
-                _fsync_dir(out_dir)
+                fsync_dir(out_dir)
                 journal.created = True
             journal.moved_aside = moved
             return journal
@@ -294,17 +295,9 @@ def _move_aside(path: Path) -> Path:
         target = path.with_name(f"{stem}.{stamp}-{n}.jsonl")
         n += 1
     os.rename(path, target)
-    _fsync_dir(path.parent)
+    fsync_dir(path.parent)
     log.info("moved %s aside to %s", path, target.name)
     return target
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def find_resumable(directory: Path, config: Config) -> Path | None:

@@ -26,6 +26,7 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from drivers.types import RGBDFrame
+from orchestrator.fsutil import fsync_dir
 
 log = logging.getLogger(__name__)
 
@@ -43,14 +44,6 @@ def _quats_xyzw(R: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_matrix(R).as_quat()
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 class EpisodeWriter:
@@ -224,7 +217,7 @@ class EpisodeWriter:
         os.fsync(self._file.fileno())
         self._file.close()
         os.replace(self.active_path, self.path)
-        _fsync_dir(self.path.parent)
+        fsync_dir(self.path.parent)
         self.closed = True
         return self.path
 
@@ -349,7 +342,7 @@ def recover_active(directory: Path, quarantine: str = "quarantine") -> list[tupl
             os.fsync(out.fileno())
         os.replace(tmp, final)
         active.unlink()
-        _fsync_dir(final.parent)
+        fsync_dir(final.parent)
         log.warning("recovered %s (%d messages)", final, len(messages))
         results.append((final, f"recovered {len(messages)} messages"))
     return results
