@@ -186,3 +186,19 @@ def test_refined_cloud_is_relifted_at_full_resolution(cam):
     assert d.max() <= 1.5 * P.voxel_m  # nothing far from the segmented object comes in
     skin = np.abs(cKDTree(c).query(fine)[0] - 0.007)
     assert np.percentile(skin, 95) < 0.003
+
+
+def test_component_spreads_match_per_component_pca():
+    from tracking.segmentation import component_spreads
+
+    rng = np.random.default_rng(4)
+    pts = rng.normal(size=(300, 3)) * np.array([0.05, 0.01, 0.002])
+    labels = rng.integers(0, 4, 300)
+    labels[labels == 2] = 3  # label 2 empty
+    out = component_spreads(pts, labels)
+    assert out.shape == (4, 3)
+    np.testing.assert_allclose(out[2], 0.0)
+    for c in (0, 1, 3):
+        q = pts[labels == c] - pts[labels == c].mean(axis=0)
+        ref = np.sqrt(np.maximum(np.linalg.eigvalsh(q.T @ q / len(q)), 0.0))
+        np.testing.assert_allclose(out[c], ref, atol=1e-12)

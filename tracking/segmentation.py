@@ -375,6 +375,23 @@ def support_plane(
     return n, o
 
 
+def component_spreads(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Per label, the square roots of the point covariance's eigenvalues, ascending: (L, 3) m.
+
+    points: (N, 3) m; labels: (N,) int >= 0, L = labels.max() + 1 (empty labels give zeros). All
+    components at once from per-label sums (no loop over components).
+    """
+    n = np.bincount(labels).astype(np.float64)
+    L = len(n)
+    w = np.maximum(n, 1.0)
+    mean = np.stack([np.bincount(labels, points[:, i], L) for i in range(3)], axis=1) / w[:, None]
+    q = points - mean[labels]
+    outer = q[:, :, None] * q[:, None, :]  # (N, 3, 3)
+    cov = np.stack([np.bincount(labels, outer[:, i, j], L) for i in range(3) for j in range(3)], axis=1)
+    ev = np.linalg.eigvalsh(cov.reshape(L, 3, 3) / w[:, None, None])
+    return np.sqrt(np.maximum(ev, 0.0))
+
+
 def grow_attached_tubes(
     depth1: np.ndarray,
     seg: Segmentation,
@@ -432,15 +449,8 @@ def grow_attached_tubes(
     _, lab = cv2.connectedComponents(grown.astype(np.uint8), connectivity=8)
     pts, pix = depth_to_points(depth1, K, T_world_cam, grown)
     comp = lab[pix[:, 0], pix[:, 1]]
-    accepted = np.zeros(len(pts), bool)
-    for c in np.unique(comp):
-        m = comp == c
-        if m.sum() < 3:
-            continue
-        q = pts[m] - pts[m].mean(axis=0)
-        ev = np.linalg.eigvalsh(q.T @ q / len(q))  # ascending
-        if np.sqrt(max(ev[1], 0.0)) <= params.attach_max_spread_m:
-            accepted |= m
+    thin = (component_spreads(pts, comp)[:, 1] <= params.attach_max_spread_m) & (np.bincount(comp) >= 3)
+    accepted = thin[comp]
     if not accepted.any():
         return seg
     extra = voxel_downsample(pts[accepted], params.voxel_m)
