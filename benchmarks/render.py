@@ -38,17 +38,6 @@ def mock_objects() -> dict[str, SimObjectConfig]:
     return {o["sim"]["kind"]: SimObjectConfig(**o["sim"]) for o in plan}
 
 
-def smooth_motion(q0: np.ndarray, q1: np.ndarray, duration: float, dt: float = 0.01) -> JointMotion:
-    """Rest-to-rest smoothstep joint motion from q0 to q1 (7,) rad over ``duration`` s."""
-    t = np.arange(0.0, duration + dt / 2, dt)
-    s = t / duration
-    a, da = 3 * s**2 - 2 * s**3, (6 * s - 6 * s**2) / duration
-    return JointMotion(
-        times=t, q=q0 + a[:, None] * (q1 - q0), dq=da[:, None] * (q1 - q0),
-        targets=q1[None], durations=np.array([duration]), limit_scale=np.array([1.0]),
-    )
-
-
 def station(obj: SimObjectConfig, width: int, height: int) -> tuple[SimStation, FakeCamera]:
     """A simulated station (both arms moving) and its connected camera on a simulated clock."""
     clock = SimClock(0.0)
@@ -57,7 +46,7 @@ def station(obj: SimObjectConfig, width: int, height: int) -> tuple[SimStation, 
         arm = FakeArm(FakeArmConfig(base=Pose(xyz=(0, y, 0)), home=HOME[n]), name=n, clock=clock, station=st)
         FakeGripper(FakeGripperConfig(), name=n, clock=clock, station=st)
         q0 = np.array(HOME[n])
-        arm.start_motion(smooth_motion(q0, q0 + sign * SWING, 6.0))
+        arm.start_motion(JointMotion.smoothstep(q0, q0 + sign * SWING, 6.0))
     cam = FakeCamera(FakeCameraConfig(width=width, height=height, pose=mock_camera_pose()), clock=clock, station=st)
     cam.connect()
     return st, cam

@@ -121,6 +121,19 @@ class JointMotion:
     durations: np.ndarray
     limit_scale: np.ndarray
 
+    @classmethod
+    def smoothstep(cls, q0: np.ndarray, q1: np.ndarray, duration: float, dt: float = 0.01) -> JointMotion:
+        """One rest-to-rest segment from q0 to q1 (7,) rad over ``duration`` s, smoothstep profile,
+        sampled every ``dt`` s: a simple motion for fake arms, tests and benchmarks (no ruckig)."""
+        q0, q1 = np.asarray(q0, np.float64), np.asarray(q1, np.float64)
+        t = np.arange(0.0, duration + dt / 2, dt)
+        s = t / duration
+        a, da = 3 * s**2 - 2 * s**3, (6 * s - 6 * s**2) / duration
+        return cls(
+            times=t, q=q0 + a[:, None] * (q1 - q0), dq=da[:, None] * (q1 - q0),
+            targets=q1[None], durations=np.array([duration]), limit_scale=np.array([1.0]),
+        )
+
     @property
     def duration(self) -> float:
         """Total duration, s."""

@@ -19,18 +19,6 @@ HOME = {  # configs/mock.yaml: TCPs at (0.45, +-0.25, 0.40) pointing down
 BASE_Y = {"left": 0.45, "right": -0.45}
 
 
-def motion(q0, q1, duration: float, dt: float = 0.01) -> JointMotion:
-    """A smooth rest-to-rest joint motion (smoothstep) from q0 to q1."""
-    q0, q1 = np.asarray(q0, float), np.asarray(q1, float)
-    t = np.arange(0.0, duration + dt / 2, dt)
-    s = t / duration
-    a, da = 3 * s**2 - 2 * s**3, (6 * s - 6 * s**2) / duration
-    return JointMotion(
-        times=t, q=q0 + a[:, None] * (q1 - q0), dq=da[:, None] * (q1 - q0),
-        targets=q1[None], durations=np.array([duration]), limit_scale=np.array([1.0]),
-    )
-
-
 @pytest.fixture
 def station():
     clock = SimClock(10.0)
@@ -87,9 +75,9 @@ def test_arm_reaches_motion_end_and_carries_the_rope(station):
     arm = arms["left"]
     q1 = np.array(HOME["left"]) + np.array([0.15, 0.1, 0.0, 0.1, 0.0, -0.1, 0.0])
     t0 = clock.now()
-    arm.start_motion(motion(arm.read_state().q, q1, 1.0))
+    arm.start_motion(JointMotion.smoothstep(arm.read_state().q, q1, 1.0))
     with pytest.raises(DeviceError):
-        arm.start_motion(motion(q1, q1, 0.5))  # busy
+        arm.start_motion(JointMotion.smoothstep(q1, q1, 0.5))  # busy
     assert arm.wait_motion(0.3) is False
     assert arm.wait_motion(5.0) is True
     assert clock.now() == pytest.approx(t0 + 1.0)
@@ -104,7 +92,7 @@ def test_motion_must_start_at_current_state(station):
     _, _, arms, _, _ = station
     q = np.array(HOME["right"])
     with pytest.raises(DeviceError, match="away from the current joint"):
-        arms["right"].start_motion(motion(q + 0.1, q, 1.0))
+        arms["right"].start_motion(JointMotion.smoothstep(q + 0.1, q, 1.0))
 
 
 def test_arm_fault_injection_and_recovery(station):
@@ -114,7 +102,7 @@ def test_arm_fault_injection_and_recovery(station):
     q1 = q0 + 0.2
     t0 = clock.now()
     arm.inject_fault(t0 + 0.4)
-    arm.start_motion(motion(q0, q1, 1.0))
+    arm.start_motion(JointMotion.smoothstep(q0, q1, 1.0))
     with pytest.raises(DeviceError) as e:
         arm.wait_motion(5.0)
     assert e.value.recoverable and clock.now() == pytest.approx(t0 + 0.4)
@@ -122,9 +110,9 @@ def test_arm_fault_injection_and_recovery(station):
     clock.sleep_until(t0 + 2.0)
     assert np.allclose(arm.read_state().q, frozen)  # frozen, not finishing the motion
     with pytest.raises(DeviceError):
-        arm.start_motion(motion(frozen, q1, 1.0))
+        arm.start_motion(JointMotion.smoothstep(frozen, q1, 1.0))
     arm.recover()
-    arm.start_motion(motion(arm.read_state().q, q1, 1.0))
+    arm.start_motion(JointMotion.smoothstep(arm.read_state().q, q1, 1.0))
     assert arm.wait_motion(2.0) and np.allclose(arm.read_state().q, q1)
 
 
@@ -132,7 +120,7 @@ def test_arm_lag_and_noise():
     clock = SimClock()
     arm = FakeArm(FakeArmConfig(lag=0.05, noise=0.001), name="left", clock=clock)
     q0 = np.array(FakeArmConfig().home)
-    arm.start_motion(motion(q0, q0 + 0.3, 1.0))
+    arm.start_motion(JointMotion.smoothstep(q0, q0 + 0.3, 1.0))
     clock.sleep_until(0.5)
     q_lag, _ = arm.state_at(0.5)
     q_cmd = arm._motion.sample(0.5)[0]
@@ -202,7 +190,7 @@ def test_physics_does_not_depend_on_query_pattern():
         }
         g = create_gripper(FakeGripperConfig(), name="left", clock=clock, station=st)
         q0 = np.array(HOME["left"])
-        arms["left"].start_motion(motion(q0, q0 + 0.2, 1.0))
+        arms["left"].start_motion(JointMotion.smoothstep(q0, q0 + 0.2, 1.0))
         for k in range(1, 301 if state_rate_reads else 2):  # many gripper reads, or one
             clock.sleep_until(k / 250 if state_rate_reads else 1.2)
             g.read_state()
