@@ -96,6 +96,13 @@ def _smooth_polyline(p: np.ndarray, window: int) -> np.ndarray:
     return out
 
 
+def _fit_line(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares line through points p (M, D): (centroid (D,), unit direction (D,))."""
+    m = p.mean(axis=0)
+    _, _, vt = np.linalg.svd(p - m, full_matrices=False)
+    return m, vt[0]
+
+
 def _leaf_on_axis(poly: np.ndarray, length_m: float) -> tuple[np.ndarray, np.ndarray]:
     """A leaf (poly[0]) moved onto the axis of its branch's end, and a point further in on that axis.
 
@@ -109,8 +116,7 @@ def _leaf_on_axis(poly: np.ndarray, length_m: float) -> tuple[np.ndarray, np.nda
     seg = poly[(arc >= 0.2 * length_m) & (arc <= length_m)]  # the last pixels themselves are the doubt
     if len(seg) < 3 or arc[-1] < 0.5 * length_m:
         return poly[0], poly[min(len(poly) - 1, max(1, int(np.searchsorted(arc, length_m)) - 1))]
-    c = seg.mean(axis=0)
-    d = np.linalg.svd(seg - c, full_matrices=False)[2][0]
+    c, d = _fit_line(seg)
     if (poly[0] - c) @ d < 0:
         d = -d  # towards the leaf
     leaf = c + float((poly[0] - c) @ d) * d
@@ -208,13 +214,6 @@ def _resample(poly: np.ndarray, n: int) -> np.ndarray:
 
 def _polyline_length(p: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
-
-
-def _fit_line(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares line through points p (M, 2): (centroid (2,), unit direction (2,))."""
-    m = p.mean(axis=0)
-    _, _, vt = np.linalg.svd(p - m, full_matrices=False)
-    return m, vt[0]
 
 
 def refine_corners(

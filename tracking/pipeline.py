@@ -226,7 +226,8 @@ class LivePipeline:
         """Make a decimated depth (h, w) m the reference D0 (and find the table plane in it: a 1D
         object's parts that did not move stand above it); ``process`` does this on its first frame."""
         self._d0 = depth
-        self._support = support_plane(depth, self.K_seg, self.T, self.seg_params)
+        if self.kind != "2d":  # only a 1D object's initial segmentation uses it
+            self._support = support_plane(depth, self.K_seg, self.T, self.seg_params)
 
     # ---------------------------------------------------------------- internals
     def _empty(self, status: str, n_points: int = 0, note: str = "") -> PipelineOutput:

@@ -434,7 +434,8 @@ def grow_attached_tubes(
     if arm_mask is not None:
         zone &= ~arm_mask
     zp, zpix = depth_to_points(depth1, K, T_world_cam, zone)
-    d, _ = cKDTree(seg.points).query(zp, distance_upper_bound=reach)
+    tree = cKDTree(seg.points)
+    d, _ = tree.query(zp, distance_upper_bound=reach)
     ok = np.isfinite(d)
     if support is not None:
         ok &= zp @ support[0] - support[1] >= params.attach_min_height_m
@@ -454,7 +455,7 @@ def grow_attached_tubes(
     if not accepted.any():
         return seg
     extra = voxel_downsample(pts[accepted], params.voxel_m)
-    d, _ = cKDTree(seg.points).query(extra, distance_upper_bound=0.5 * params.voxel_m)
+    d, _ = tree.query(extra, distance_upper_bound=0.5 * params.voxel_m)
     extra = extra[~np.isfinite(d)]  # voxels the difference cloud already has stay as they were
     return Segmentation(np.concatenate([seg.points, extra]), seg.n_foreground + int(accepted.sum()), seg.n_clusters)
 
