@@ -154,6 +154,35 @@ def test_refine_corners_meets_the_fitted_sides_on_a_rounded_corner() -> None:
     assert out[3] == shifted[3]  # a fixed (held) corner stays
 
 
+def test_refine_corners_is_steady_under_contour_jitter() -> None:
+    """A rounded corner's pick must not slide along the arc with a pixel of contour jitter (the
+    nearest contour point to the sides' meeting point did: 1-1.5 px here; the bisector crossing 0.4)."""
+    from tracking.anchors import refine_corners
+
+    c0 = _rounded_rectangle(300.0, 200.0, 40.0, n=1200)
+    box = np.array([[0.0, 0.0], [300.0, 0.0], [300.0, 200.0], [0.0, 200.0]])
+    picks = []
+    for seed in range(20):
+        c = np.rint(c0 + np.random.default_rng(seed).normal(0.0, 0.5, c0.shape))  # jitter, whole pixels
+        ci = np.sort([int(np.argmin(np.linalg.norm(c - b, axis=1))) for b in box])
+        picks.append(c0[refine_corners(c, ci, np.zeros(4, bool))])
+    P = np.stack(picks)
+    spread = np.sqrt((np.linalg.norm(P - P.mean(axis=0), axis=2) ** 2).mean(axis=0))
+    assert (spread < 0.7).all(), spread
+
+
+def test_nanmedian_rows_matches_numpy() -> None:
+    from tracking.anchors import _nanmedian_rows
+
+    rng = np.random.default_rng(1)
+    for k in (1, 2, 5, 16):
+        nb = rng.normal(size=(200, k, 3))
+        missing = rng.random((200, k)) < 0.4
+        missing[:, 0] = False  # every row has a point
+        nb[missing] = np.nan
+        np.testing.assert_allclose(_nanmedian_rows(nb), np.nanmedian(nb, axis=1))
+
+
 def test_savgol_quadratic_matches_scipy() -> None:
     from scipy.signal import savgol_filter
 

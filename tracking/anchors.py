@@ -23,6 +23,8 @@ from tracking.skeleton import JUNCTION, LEAF, skeleton_graph
 BOUNDARY = 2
 CORNER = 3
 SIDE_SMOOTH_M = 0.12  # a cloth side's lifted contour is smoothed over this before it is measured, m
+SIDE_LIFT_M = 0.008  # a contour pixel is lifted as the median of the cloud points projected within this, m
+SIDE_LIFT_K = 16  # ... of at most this many of them
 
 
 @dataclass(frozen=True)
@@ -47,7 +49,8 @@ class Contour3D:
     sides: four (n_i, 3) float64 m polylines corner to corner: top (c0->c1, cols), right (c1->c2, rows),
     bottom (c3->c2, cols), left (c0->c3, rows); sides_uv: the same in image pixels (n_i, 2);
     lengths: (4,) m measured along the dense contour. Kc: (3, 3) camera matrix of the contour image;
-    cloud_uv: (N, 2) cloud pixels in it, tree_uv: their cKDTree; pixel_m: its pixel size at the object, m.
+    cloud_uv: (N, 2) cloud pixels in it, tree_uv: their cKDTree; pixel_m: its pixel size at the object, m;
+    T_world_cam: (4, 4) the camera pose.
     """
 
     sides: list[np.ndarray]
@@ -57,6 +60,7 @@ class Contour3D:
     cloud_uv: np.ndarray
     tree_uv: cKDTree
     pixel_m: float
+    T_world_cam: np.ndarray
 
 
 def lift_pixels(
@@ -77,7 +81,17 @@ def lift_pixels(
     nb = np.where(np.isfinite(d)[..., None], cloud[np.minimum(idx, len(cloud) - 1)], np.nan)
     none = ~np.isfinite(d[:, 0])
     nb[none, 0] = cloud[tree.query(pix_uv[none])[1]]
-    return np.nanmedian(nb, axis=1)
+    return _nanmedian_rows(nb)
+
+
+def _nanmedian_rows(nb: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(nb, axis=1)`` of (P, k, D) points whose missing ones are NaN in every coordinate
+    and each row has one at least, (P, D); sort-based, a tenth of nanmedian's time (per-frame cloth anchors)."""
+    s = np.sort(nb, axis=1)  # NaN last
+    n = np.isfinite(nb[:, :, 0]).sum(axis=1)
+    lo = np.take_along_axis(s, ((n - 1) // 2)[:, None, None], axis=1)[:, 0]
+    hi = np.take_along_axis(s, (n // 2)[:, None, None], axis=1)[:, 0]
+    return 0.5 * (lo + hi)
 
 
 def _smooth_polyline(p: np.ndarray, window: int) -> np.ndarray:
@@ -219,15 +233,16 @@ def _polyline_length(p: np.ndarray) -> float:
 def refine_corners(
     c: np.ndarray, ci: np.ndarray, fixed: np.ndarray, inner: float = 0.2, smooth: int = 5
 ) -> np.ndarray:
-    """Free corners of a closed contour c (M, 2) px moved to where their two sides' lines meet.
+    """Free corners of a closed contour c (M, 2) px moved to where the contour crosses the bisector of their two sides.
 
     ci: (4,) increasing contour indices of the corners; fixed: (4,) bool corners left alone (held).
     Each side between corners is fitted with a line over its middle (``inner`` of its samples cut
-    at both ends); a free corner becomes the contour point nearest its two sides' intersection,
-    searched within the outer ``inner`` of each side. The nearest contour point to the minimum-area
-    rectangle's corner is ill-defined on a rounded or curled corner (it jumps along the curve with
-    the noise: 6 mm spread over camera seeds); the meeting point of two fitted sides is not.
-    Returns (4,) contour indices.
+    at both ends); a free corner becomes the contour point, searched within the outer ``inner`` of
+    each side, nearest the bisector of its two sides' lines through their meeting point. On a
+    rounded or curled corner the nearest contour point to the minimum-area rectangle's corner, or
+    to the lines' meeting point, is a flat minimum that slides along the arc with a pixel of
+    contour jitter (6 mm, then 2.7 mm spread over camera seeds); a line across the arc is crossed
+    at one place. Returns (4,) contour indices.
     """
     M = len(c)
     ci = np.asarray(ci, np.int64)
@@ -251,9 +266,14 @@ def refine_corners(
             continue
         t = np.linalg.solve(A, p1 - p0)
         x = p0 + t[0] * d0
+        q = c[ci[k]]
+        d0 = d0 if (q - p0) @ d0 > 0 else -d0  # along the previous side, into the corner
+        d1 = d1 if (p1 - q) @ d1 > 0 else -d1  # along the next side, out of it
+        b = (d0 - d1) / np.linalg.norm(d0 - d1)  # the corner's outward bisector
         lo, hi = int(round(inner * span[k - 1])), int(round(inner * span[k]))
         window = (ci[k] + np.arange(-lo, hi + 1)) % M
-        out[k] = window[int(np.argmin(np.linalg.norm(cs[window] - x, axis=1)))]
+        r = cs[window] - x
+        out[k] = window[int(np.argmin(np.abs(r[:, 0] * b[1] - r[:, 1] * b[0])))]
     return out
 
 
@@ -266,7 +286,8 @@ def contour_3d(
 ) -> Contour3D | None:
     """Outer contour of a 2D object's cloud (N, 3) m split at four corners into lifted sides; None if no contour.
 
-    Corners are the contour points nearest the minimum-area rectangle's corners; a rectangle corner
+    Corners start at the contour points nearest the minimum-area rectangle's corners, free ones then
+    move to where the contour crosses their fitted sides' bisector (``refine_corners``); a rectangle corner
     nearest a held point (``held`` (H, 3) m: TCPs of closed grippers, the cloth's held corners) is
     replaced by the contour point nearest that point's projection. Corner 0 is the one nearest the
     image's top-left, sides follow the contour order.
@@ -307,9 +328,11 @@ def contour_3d(
     dense = [cc[ci[k] : ci[k + 1] + 1] for k in range(4)]
     sides_uv = [dense[0], dense[1], dense[2][::-1], dense[3][::-1]]
     tree_uv = cKDTree(uv)
-    lifted = [cloud[tree_uv.query(s)[1]] for s in sides_uv]
+    # robust lift (median of the neighbours, not the nearest voxel): a boundary voxel is partly
+    # filled, its centroid wanders with the edge's dropouts and flying pixels
+    lifted = [lift_pixels(s, uv, cloud, SIDE_LIFT_M / px_m, SIDE_LIFT_K, tree_uv) for s in sides_uv]
     lengths = np.array([_polyline_length(_smooth_polyline(p, max(3, int(0.01 / px_m)))) for p in lifted])
-    return Contour3D(lifted, sides_uv, lengths, Kc, uv, tree_uv, px_m)
+    return Contour3D(lifted, sides_uv, lengths, Kc, uv, tree_uv, px_m, np.asarray(T_world_cam, np.float64))
 
 
 @lru_cache(maxsize=64)
@@ -334,48 +357,51 @@ def _savgol_quadratic(p: np.ndarray, window: int) -> np.ndarray:
     return out
 
 
-def _resample_by_3d(uv: np.ndarray, xyz: np.ndarray, n: int, window: int) -> tuple[np.ndarray, np.ndarray]:
-    """n points along a side, equally spaced in 3D arc length: image points (n, 2) and 3D points (n, 3) m.
+def _resample_by_3d(xyz: np.ndarray, n: int, window: int) -> np.ndarray:
+    """n points (n, 3) m along a side, equally spaced in 3D arc length on the smoothed side.
 
-    uv: (M, 2) contour pixels of the side; xyz: (M, 3) m their lifted cloud points. The lifted side
-    is smoothed first by a Savitzky-Golay filter (quadratic over ``window`` samples; it keeps the
-    side's ends and bends unbiased): a lifted contour zig-zags with the depth noise, which
-    lengthens the side where it is noisiest (10 % over camera seeds) and would move the nodes
-    with the noise; the nodes are placed on the smoothed side, not re-lifted from single points.
+    xyz: (M, 3) m the side's lifted contour. It is smoothed first by a Savitzky-Golay filter
+    (quadratic over ``window`` samples; it keeps the side's ends and bends unbiased): a lifted
+    contour zig-zags with the depth noise, which lengthens the side where it is noisiest (10 %
+    over camera seeds) and would move the nodes with the noise; the nodes are placed on the
+    smoothed side, not re-lifted from single points.
     """
-    if len(uv) < 2:
-        return np.repeat(uv[:1], n, axis=0), np.repeat(xyz[:1], n, axis=0)
+    if len(xyz) < 2:
+        return np.repeat(xyz[:1], n, axis=0)
     w = min(window, len(xyz) - (1 - len(xyz) % 2))
     p = _savgol_quadratic(xyz, w) if w > 3 else xyz
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
-    if s[-1] <= 0:
-        return _resample(uv, n), _resample(p, n)
-    t = np.linspace(0.0, s[-1], n)
-    return (
-        np.stack([np.interp(t, s, uv[:, i]) for i in range(2)], axis=1),
-        np.stack([np.interp(t, s, p[:, i]) for i in range(3)], axis=1),
-    )
+    return _resample(p, n)
 
 
 def grid_boundary(ct: Contour3D, rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
-    """Coons-patch grid (rows, cols, 2) in the contour image from its four sides, each resampled
-    evenly by 3D arc length, and the boundary nodes' 3D positions (rows, cols, 3) m on the smoothed
-    sides (NaN inside; a corner is the mean of its two sides' ends)."""
+    """Coons-patch grid (rows, cols, 2) in the contour image, and the boundary nodes' 3D positions
+    (rows, cols, 3) m (NaN inside).
+
+    Each side is resampled evenly by 3D arc length on its smoothed lift (a corner is the mean of its
+    two sides' ends); the Coons patch spans those nodes' projections, not the raw contour pixels,
+    whose jitter would otherwise move every interior node (2.5 mm spread over camera seeds where
+    the cloth is seen at a slant).
+    """
     w = max(5, int(round(SIDE_SMOOTH_M / ct.pixel_m)))
-    (top, top3), (right, right3), (bottom, bottom3), (left, left3) = (
-        _resample_by_3d(ct.sides_uv[k], ct.sides[k], n, w) for k, n in enumerate((cols, rows, cols, rows))
+    top3, right3, bottom3, left3 = (
+        _resample_by_3d(ct.sides[k], n, w) for k, n in enumerate((cols, rows, cols, rows))
     )
-    u = np.linspace(0.0, 1.0, cols)[None, :, None]
-    v = np.linspace(0.0, 1.0, rows)[:, None, None]
-    c00, c01, c10, c11 = top[0], top[-1], bottom[0], bottom[-1]
-    ruled = (1 - v) * top[None] + v * bottom[None] + (1 - u) * left[:, None] + u * right[:, None]
-    bil = (1 - u) * (1 - v) * c00 + u * (1 - v) * c01 + (1 - u) * v * c10 + u * v * c11
     xyz = np.full((rows, cols, 3), np.nan)
     xyz[0, :], xyz[-1, :], xyz[:, 0], xyz[:, -1] = top3, bottom3, left3, right3
     xyz[0, 0] = 0.5 * (top3[0] + left3[0])
     xyz[0, -1] = 0.5 * (top3[-1] + right3[0])
     xyz[-1, 0] = 0.5 * (bottom3[0] + left3[-1])
     xyz[-1, -1] = 0.5 * (bottom3[-1] + right3[-1])
+    ring = np.concatenate([xyz[0], xyz[-1], xyz[1:-1, 0], xyz[1:-1, -1]])
+    uv = project_points(ring, ct.Kc, ct.T_world_cam)[0]
+    top, bottom = uv[:cols], uv[cols : 2 * cols]
+    left = np.concatenate([top[:1], uv[2 * cols : 2 * cols + rows - 2], bottom[:1]])
+    right = np.concatenate([top[-1:], uv[2 * cols + rows - 2 :], bottom[-1:]])
+    u = np.linspace(0.0, 1.0, cols)[None, :, None]
+    v = np.linspace(0.0, 1.0, rows)[:, None, None]
+    c00, c01, c10, c11 = top[0], top[-1], bottom[0], bottom[-1]
+    ruled = (1 - v) * top[None] + v * bottom[None] + (1 - u) * left[:, None] + u * right[:, None]
+    bil = (1 - u) * (1 - v) * c00 + u * (1 - v) * c01 + (1 - u) * v * c10 + u * v * c11
     return ruled - bil, xyz
 
 
@@ -391,7 +417,8 @@ def boundary_indices(rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def lift_grid(ct: Contour3D, cloud: np.ndarray, rows: int, cols: int) -> np.ndarray:
-    """Grid keypoints (rows*cols, 3) m: Coons grid in the image lifted by the nearest projected cloud point."""
+    """Grid keypoints (rows*cols, 3) m: the Coons grid in the image lifted robustly (``lift_pixels``), boundary
+    nodes on the smoothed sides (``grid_boundary``)."""
     g, b = grid_boundary(ct, rows, cols)
     X = lift_pixels(g.reshape(-1, 2), ct.cloud_uv, cloud, 3.0, 8, ct.tree_uv)
     b = b.reshape(-1, 3)
