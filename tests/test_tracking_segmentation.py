@@ -202,3 +202,33 @@ def test_component_spreads_match_per_component_pca():
         q = pts[labels == c] - pts[labels == c].mean(axis=0)
         ref = np.sqrt(np.maximum(np.linalg.eigvalsh(q.T @ q / len(q)), 0.0))
         np.testing.assert_allclose(out[c], ref, atol=1e-12)
+
+
+def test_refined_grown_cloud_regrows_an_edge_on_surface_at_full_resolution(cam):
+    """A surface seen almost edge-on steps 24 mm per decimated pixel (over ``grow_step_m``): the
+    decimated growth lost its upper half; against the references it is regrown at full resolution,
+    and nothing of the table behind its outline comes in."""
+    from tracking.geometry import decimated_intrinsics
+    from tracking.segmentation import refine_object_cloud, voxel_downsample
+
+    K, T = cam
+    table = S.render_depth([S.table_mesh()], K, T, (H, W))
+    depth = table.copy()
+    r0, r1, c0, c1 = 200, 280, 250, 390
+    rows = np.arange(r0, r1, dtype=np.float32)[:, None]
+    depth[r0:r1, c0:c1] = 0.4 + 0.006 * (rows - r0)  # 6 mm a row: 24 mm a decimated row
+    assert table[r0:r1, c0:c1].min() > 0.95
+    s = 4
+    Kd = decimated_intrinsics(K, s)
+    kept = np.zeros((H, W), bool)
+    kept[240:r1, c0:c1] = True  # what the decimated growth found
+    coarse_pts, _ = depth_to_points(depth[::s, ::s], Kd, T, kept[::s, ::s])
+    coarse = voxel_downsample(coarse_pts, P.voxel_m)
+    refs = table[None, ::s, ::s]
+    plain = refine_object_cloud(depth, coarse, K, T, P)
+    grown = refine_object_cloud(depth, coarse, K, T, P, refs=refs)
+    top = lambda pts: project_points(pts, K, T)[0][:, 1].min()  # noqa: E731
+    assert top(plain) > 235  # near the coarse cloud only
+    assert top(grown) < r0 + 2  # the whole strip
+    z = project_points(grown, K, T)[1]
+    assert z.max() < 0.4 + 0.006 * (r1 - r0) + 0.01  # no table point

@@ -215,12 +215,15 @@ class LivePipeline:
             return segment_by_difference(refs, depth, self.K_seg, self.T, p, arm, grow=True)
         return grow_attached_tubes(depth, seg, self.K_seg, self.T, p, arm, self._support)
 
-    def refine(self, depth: np.ndarray, cloud: np.ndarray, arm: np.ndarray | None) -> np.ndarray:
-        """The initial object cloud (N, 3) m re-lifted from the full-resolution depth (H, W) m
-        (``refine_object_cloud``; arm: decimated arm mask): initialisation runs on it, once."""
+    def refine(self, depth: np.ndarray, seg: Segmentation, arm: np.ndarray | None, refs: np.ndarray) -> np.ndarray:
+        """The initial object cloud (N, 3) m re-lifted (a grown one re-grown against the decimated
+        references refs (R, h, w) m) from the full-resolution depth (H, W) m (``refine_object_cloud``;
+        arm: decimated arm mask): initialisation runs on it, once."""
         if self.stride == 1:
-            return cloud
-        return refine_object_cloud(np.asarray(depth, np.float32), cloud, self.K, self.T, self.params, arm)
+            return seg.points
+        return refine_object_cloud(
+            np.asarray(depth, np.float32), seg.points, self.K, self.T, self.params, arm, refs if seg.grown else None
+        )
 
     def set_reference(self, depth: np.ndarray) -> None:
         """Make a decimated depth (h, w) m the reference D0 (and find the table plane in it: a 1D
@@ -264,7 +267,7 @@ class LivePipeline:
         n = len(seg.points)
         if self._growing(n) or n < self.min_init_points:
             return self._empty("waiting", n, "waiting for the arms to move the object")
-        cloud = self.refine(full, seg.points, arm)
+        cloud = self.refine(full, seg, arm, refs)
         try:
             ini, res = self.tracker.initialise(cloud, tcp=tcp, kind=self.kind, gripper_closed=closed)
         except InitialisationError as e:

@@ -9,7 +9,7 @@ Both return a voxel-down-sampled world-frame object cloud.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -29,11 +29,14 @@ class Segmentation:
     points: (N, 3) float64, metres, world frame, voxel-down-sampled object points.
     n_foreground: number of lifted foreground pixels before clustering.
     n_clusters: DBSCAN clusters found (noise excluded).
+    grown: whether the object was grown over the changed pixels (``segment_by_difference(grow=True)``);
+    ``refine_object_cloud`` then grows it again at full resolution.
     """
 
     points: np.ndarray
     n_foreground: int
     n_clusters: int
+    grown: bool = False
 
 
 def valid_depth(depth: np.ndarray, params: TrackingParams) -> np.ndarray:
@@ -335,7 +338,7 @@ def segment_by_difference(
     if arm_mask is not None:
         candidate &= ~arm_mask
     grown = grow_depth_region(depth1, seeds, candidate, params.grow_step_m)
-    return _cluster(depth1, grown | (appeared & seeds), K, T_world_cam, params, None)
+    return replace(_cluster(depth1, grown | (appeared & seeds), K, T_world_cam, params, None), grown=True)
 
 
 def support_plane(
@@ -467,6 +470,7 @@ def refine_object_cloud(
     T_world_cam: np.ndarray,
     params: TrackingParams,
     arm_mask: np.ndarray | None = None,
+    refs: np.ndarray | None = None,
 ) -> np.ndarray:
     """An object's cloud (N, 3) m segmented on a decimated depth, re-lifted from the full-resolution
     depth (H, W) m (camera matrix K (3, 3) of that resolution) and voxelised again, (M, 3) m.
@@ -476,6 +480,13 @@ def refine_object_cloud(
     captures. Every full-resolution pixel within a voxel's footprint of the cloud's projection and
     within ``voxel_m`` of it in 3D is lifted (not in ``arm_mask``, (H, W) bool or decimated, resized)
     and voxel-averaged: ~10 readings a voxel, so its centroid is steady to the noise's tenth.
+
+    refs: (R, h, w) m the reference depths (any resolution, resized nearest) of a grown segmentation
+    (``Segmentation.grown``): the growth over the pixels changed against them is redone at full
+    resolution. A surface seen almost edge-on (a hanging cloth's top hem) steps by more than
+    ``grow_step_m`` between decimated pixels, and a decimated pixel on its edge may sample the
+    background: the decimated growth loses it in some captures and not others (20 mm of the
+    cloth's top edge, 4 mm spread of its keypoints); full-resolution neighbours are a quarter as far apart.
     """
     if len(cloud) == 0:
         return cloud
@@ -487,15 +498,31 @@ def refine_object_cloud(
     mask[rc[ok, 0], rc[ok, 1]] = 1
     r = max(1, int(np.ceil(params.voxel_m * float(K[0, 0]) / float(np.median(z)))))
     mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)).astype(bool)
-    mask &= valid_depth(depth, params)
-    if arm_mask is not None:
-        if arm_mask.shape != (H, W):
-            arm_mask = cv2.resize(arm_mask.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
-        mask &= ~arm_mask
-    pts, _ = depth_to_points(depth, K, T_world_cam, mask)
+    valid = valid_depth(depth, params)
+    arm = None if arm_mask is None else _full_size(arm_mask, (H, W))
+    if arm is not None:
+        valid &= ~arm
+    pts, pix = depth_to_points(depth, K, T_world_cam, mask & valid)
     d, _ = cKDTree(cloud).query(pts, distance_upper_bound=params.voxel_m)
-    pts = pts[np.isfinite(d)]
+    near = np.isfinite(d)
+    pts = pts[near]
+    if refs is not None and params.grow_step_m > 0 and len(pts):
+        seeds = np.zeros((H, W), bool)
+        seeds[pix[near, 0], pix[near, 1]] = True
+        refs = np.asarray(refs, np.float32).reshape(-1, *np.shape(refs)[-2:])
+        up = np.stack([cv2.resize(r, (W, H), interpolation=cv2.INTER_NEAREST) for r in refs])
+        appeared, vanished = difference_masks(up, depth, params)
+        grown = grow_depth_region(depth, seeds, ((appeared | vanished) & valid) | seeds, params.grow_step_m)
+        extra, _ = depth_to_points(depth, K, T_world_cam, grown & ~seeds)
+        pts = np.concatenate([pts, extra])
     return voxel_downsample(pts, params.voxel_m) if len(pts) else cloud
+
+
+def _full_size(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """A (h, w) bool mask resized (nearest) to shape (H, W)."""
+    if mask.shape == shape:
+        return mask.astype(bool)
+    return cv2.resize(mask.astype(np.uint8), (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST).astype(bool)
 
 
 def background_from_depths(depths: np.ndarray) -> np.ndarray:
