@@ -205,3 +205,21 @@ def test_leaf_on_axis_removes_the_skeleton_tips_lateral_offset() -> None:
     short = poly[:3]
     leaf2, _ = _leaf_on_axis(short, 0.025)
     np.testing.assert_array_equal(leaf2, short[0])  # too short to fit: left alone
+
+
+def test_extended_leaf_is_centred_on_the_tube_not_on_a_tilted_axis() -> None:
+    """A leaf pushed along an axis 5 degrees off lands on the tube's centre, not 1.7 mm aside."""
+    from tracking.anchors import _extend_leaf
+
+    rng = np.random.default_rng(7)
+    x = rng.uniform(0.0, 0.1, 4000)
+    a = rng.uniform(0.0, np.pi, 4000)  # the visible half of a tube of radius 7 mm along x
+    cloud = np.stack([x, 0.007 * np.cos(a), 0.007 * np.sin(a)], axis=1)
+    tree = cKDTree(cloud)
+    leaf = np.array([0.08, 0.0, 0.0])
+    tilt = np.array([np.cos(np.radians(5.0)), np.sin(np.radians(5.0)), 0.0])
+    tip = _extend_leaf(leaf, leaf - 0.02 * tilt, tree, cloud, 0.03, 0.01)
+    assert abs(tip[0] - 0.1) < 0.002
+    assert abs(tip[1]) < 0.0005, tip
+    off_axis = _extend_leaf(leaf, leaf - 0.02 * tilt, tree, cloud, 0.03, 0.0)
+    assert abs(off_axis[1]) > 0.0012  # the axis alone

@@ -232,3 +232,26 @@ def test_refined_grown_cloud_regrows_an_edge_on_surface_at_full_resolution(cam):
     assert top(grown) < r0 + 2  # the whole strip
     z = project_points(grown, K, T)[1]
     assert z.max() < 0.4 + 0.006 * (r1 - r0) + 0.01  # no table point
+
+
+def test_refined_1d_cloud_regrows_its_unmoved_end_at_full_resolution(cam):
+    """With the table plane, refinement grows a rope's end the decimated cloud missed, at full resolution."""
+    from tracking.geometry import decimated_intrinsics
+    from tracking.segmentation import refine_object_cloud, support_plane, voxel_downsample
+
+    K, T = cam
+    rng = np.random.default_rng(5)
+    c, rope = _lying_rope()
+    table = S.render_depth([S.table_mesh()], K, T, (H, W), rng=rng)
+    depth = S.render_depth([S.table_mesh(), rope], K, T, (H, W), rng=rng)
+    on_rope = S.render_depth([rope], K, T, (H, W)) > 0
+    s = 4
+    coarse_pts, _ = depth_to_points(depth[::s, ::s], decimated_intrinsics(K, s), T, on_rope[::s, ::s])
+    coarse_pts = coarse_pts[(coarse_pts[:, 2] > 0.004) & (coarse_pts[:, 0] < 0.15 - 0.03)]  # the end did not move
+    coarse = voxel_downsample(coarse_pts, P.voxel_m)
+    plain = refine_object_cloud(depth, coarse, K, T, P)
+    grown = refine_object_cloud(depth, coarse, K, T, P, support=support_plane(table, K, T, P))
+    assert plain[:, 0].max() < 0.15 - 0.02
+    assert grown[:, 0].max() > 0.15 - 0.005  # the end is reached
+    d, _ = cKDTree(c).query(grown)
+    assert (d < 0.007 + 0.004).all()  # rope only: none of the table around it

@@ -137,11 +137,16 @@ def _leaf_on_axis(poly: np.ndarray, length_m: float) -> tuple[np.ndarray, np.nda
     return leaf, c
 
 
-def _extend_leaf(leaf: np.ndarray, inward: np.ndarray, tree: cKDTree, cloud: np.ndarray, reach: float) -> np.ndarray:
+def _extend_leaf(
+    leaf: np.ndarray, inward: np.ndarray, tree: cKDTree, cloud: np.ndarray, reach: float, slab: float
+) -> np.ndarray:
     """Push a leaf (3,) m outward along the branch (inward -> leaf) to the cloud's tip within ``reach`` m.
 
-    The leaf moves along that line only, by the mean reach of the cloud points within 4 mm of the
-    farthest one: the lateral place of those 1-3 points is noise (5 mm spread over camera seeds)."""
+    The leaf moves along that line by the mean reach of the cloud points within 4 mm of the farthest
+    one (the lateral place of those 1-3 points is noise: 5 mm spread over camera seeds), then
+    sideways onto the mean of the points within ``slab`` m of the tip along the line: the line is
+    fitted to a few centimetres of skeleton, its direction error times the reach put the tip 1-4 mm
+    aside, while a slab holds tens of full-resolution points."""
     t = leaf - inward
     n = np.linalg.norm(t)
     if n < 1e-9:
@@ -152,12 +157,15 @@ def _extend_leaf(leaf: np.ndarray, inward: np.ndarray, tree: cKDTree, cloud: np.
         return leaf
     q = cloud[idx] - leaf
     s = q @ t
-    lateral = np.linalg.norm(q - s[:, None] * t, axis=1)
-    ok = (s > 0) & (lateral < 0.5 * reach)
+    lat = q - s[:, None] * t
+    ok = (s > 0) & (np.linalg.norm(lat, axis=1) < 0.5 * reach)
     if not ok.any():
         return leaf
     tip = ok & (s > s[ok].max() - 0.004)
-    return leaf + float(s[tip].mean()) * t  # along the branch only: the few tip points' lateral spread is noise
+    st = float(s[tip].mean())
+    near = (np.linalg.norm(lat, axis=1) < 0.5 * reach) & (s > st - slab) & (s <= st + 0.004)
+    side = lat[near].mean(axis=0) if slab > 0 and near.sum() >= 5 else np.zeros(3)
+    return leaf + st * t + side
 
 
 def skeleton_3d(
@@ -199,7 +207,7 @@ def skeleton_3d(
         for end, from_end in ((a, poly), (b, poly[::-1])):
             if kinds[end] == LEAF:
                 leaf, inner = _leaf_on_axis(from_end, params.end_axis_m)
-                ext[end] = _extend_leaf(leaf, inner, tree, cloud, params.end_extend_m)
+                ext[end] = _extend_leaf(leaf, inner, tree, cloud, params.end_extend_m, params.end_slab_m)
     out = []
     for a, b, poly in polys:
         poly = poly.copy()

@@ -53,6 +53,7 @@ class TrackingParams:
         projected within this radius, px (mask pixels).
       end_extend_m: leaf anchors are pushed along the branch tangent to the cloud's tip within this, m.
       end_axis_m: a leaf is first put on the axis of its branch, a line fitted over this much of it, m.
+      end_slab_m: a pushed leaf is centred on the cloud points within this of the tip along the branch, m.
     1D initialisation
       n_keypoints_1d: total keypoints of a 1D object (anchors included).
     2D initialisation
@@ -120,6 +121,7 @@ class TrackingParams:
     lift_k: int = 8
     end_extend_m: float = 0.03
     end_axis_m: float = 0.025
+    end_slab_m: float = 0.01
 
     n_keypoints_1d: int = 25
     grid_rows: int = 6

@@ -216,13 +216,15 @@ class LivePipeline:
         return grow_attached_tubes(depth, seg, self.K_seg, self.T, p, arm, self._support)
 
     def refine(self, depth: np.ndarray, seg: Segmentation, arm: np.ndarray | None, refs: np.ndarray) -> np.ndarray:
-        """The initial object cloud (N, 3) m re-lifted (a grown one re-grown against the decimated
-        references refs (R, h, w) m) from the full-resolution depth (H, W) m (``refine_object_cloud``;
-        arm: decimated arm mask): initialisation runs on it, once."""
+        """The initial object cloud (N, 3) m re-lifted from the full-resolution depth (H, W) m, a grown
+        one re-grown against the decimated references refs (R, h, w) m, a 1D one's thin parts above
+        the table grown again (``refine_object_cloud``; arm: decimated arm mask): initialisation runs
+        on it, once."""
         if self.stride == 1:
             return seg.points
         return refine_object_cloud(
-            np.asarray(depth, np.float32), seg.points, self.K, self.T, self.params, arm, refs if seg.grown else None
+            np.asarray(depth, np.float32), seg.points, self.K, self.T, self.params, arm,
+            refs=refs if seg.grown else None, support=None if seg.grown else self._support,
         )
 
     def set_reference(self, depth: np.ndarray) -> None:

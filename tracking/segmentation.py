@@ -471,6 +471,7 @@ def refine_object_cloud(
     params: TrackingParams,
     arm_mask: np.ndarray | None = None,
     refs: np.ndarray | None = None,
+    support: tuple[np.ndarray, float] | None = None,
 ) -> np.ndarray:
     """An object's cloud (N, 3) m segmented on a decimated depth, re-lifted from the full-resolution
     depth (H, W) m (camera matrix K (3, 3) of that resolution) and voxelised again, (M, 3) m.
@@ -487,6 +488,11 @@ def refine_object_cloud(
     ``grow_step_m`` between decimated pixels, and a decimated pixel on its edge may sample the
     background: the decimated growth loses it in some captures and not others (20 mm of the
     cloth's top edge, 4 mm spread of its keypoints); full-resolution neighbours are a quarter as far apart.
+
+    support: a 1D object's table plane (``support_plane``): its thin parts standing above it are
+    grown at full resolution too (``grow_attached_tubes``). The last centimetre of a branch hanging
+    just above the table is within a decimated pixel's noise of it and was lost in some captures
+    (its tip 1-8 mm short over camera seeds).
     """
     if len(cloud) == 0:
         return cloud
@@ -515,7 +521,12 @@ def refine_object_cloud(
         grown = grow_depth_region(depth, seeds, ((appeared | vanished) & valid) | seeds, params.grow_step_m)
         extra, _ = depth_to_points(depth, K, T_world_cam, grown & ~seeds)
         pts = np.concatenate([pts, extra])
-    return voxel_downsample(pts, params.voxel_m) if len(pts) else cloud
+    if not len(pts):
+        return cloud
+    out = voxel_downsample(pts, params.voxel_m)
+    if support is not None:
+        out = grow_attached_tubes(depth, Segmentation(out, len(pts), 1), K, T_world_cam, params, arm, support).points
+    return out
 
 
 def _full_size(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
