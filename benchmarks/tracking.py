@@ -1,7 +1,7 @@
 """TrackDeform3D on simulated station sequences: per-frame time and the paper's metrics (no assertions).
 
 Usage: .venv/bin/python benchmarks/tracking.py [--width 1280 --height 720 --seconds 6 --speed medium
-       --only rope|branched_rope|cloth --repeats 3 --seeds 10 --json]
+       --only rope|branched_rope|cloth --repeats 3 --seeds 10 --first-seed 0 --json]
 
 For each object of ``configs/mock.yaml`` (rope 20 keypoints, branched rope 25, cloth 6x6) the simulated
 station (simulated time, deterministic) runs the object's library program; every camera frame is
@@ -280,8 +280,9 @@ def init_consistency(
     sim: dict[str, Any] | None = None,
     settle_s: float = 0.5,
     reference_gap: int = 10,
+    first_seed: int = 0,
 ) -> dict[str, Any]:
-    """Initialise the same scene rendered with ``seeds`` camera noise seeds -> keypoint spread, mm.
+    """Initialise the same scene rendered with ``seeds`` camera seeds from ``first_seed`` -> keypoint spread, mm.
 
     For each seed the frames the pipeline would use are rendered: D0 at rest, the three recent
     references (every ``reference_gap`` frames before D1) and D1 at ``at_s`` s into the motion;
@@ -296,7 +297,7 @@ def init_consistency(
     fps = cfg0.station.camera.fps
     k1 = int(round((settle_s + at_s) * fps))
     times = [0.0] + [(k1 - j * reference_gap) / fps for j in (3, 2, 1)] + [k1 / fps]
-    for seed in range(seeds):
+    for seed in range(first_seed, first_seed + seeds):
         cfg = station_config(width, height, camera_seed=seed)
         obj = object_config(cfg, name, sim)
         seq = simulate(cfg, obj, 0.0, speed, settle_s, frame_times=times)
@@ -384,6 +385,8 @@ def main() -> None:
     ap.add_argument("--only", choices=list(OBJECTS), action="append", help="object(s) to run (repeatable)")
     ap.add_argument("--repeats", type=int, default=3, help="pipeline runs per sequence (timing medians)")
     ap.add_argument("--seeds", type=int, default=10, help="camera seeds of the initialisation check (0: skip)")
+    ap.add_argument("--first-seed", type=int, default=0,
+                    help="first camera seed of the initialisation check (another set: a figure not tuned to seeds 0-9)")
     ap.add_argument("--init-at", type=float, default=None,
                     help="D1 of the init check, s into the motion (default: when the sequence initialised)")
     ap.add_argument("--cloth-length", type=float, default=0.55,
@@ -403,7 +406,9 @@ def main() -> None:
         r["render_s"] = round(t_render, 1)
         if a.seeds > 0:
             at = a.init_at if a.init_at is not None else (r["init_t_s"] if r["init_t_s"] is not None else 1.0)
-            ic = init_consistency(name, a.width, a.height, a.speed, a.seeds, at, sims.get(name))
+            ic = init_consistency(
+                name, a.width, a.height, a.speed, a.seeds, at, sims.get(name), first_seed=a.first_seed
+            )
             r.update({k: v for k, v in ic.items() if k.startswith("spread") or k == "init_failures"})
             if "note" in ic:
                 r["init_note"] = ic["note"]
@@ -419,7 +424,8 @@ def main() -> None:
         return
     print(f"{a.width}x{a.height}, {a.speed}, {a.seconds:g} s per sequence, timings median of {a.repeats} runs "
           f"(wall ms unless 'cpu'; CPU = process time, all threads), metrics on raw keypoints (mm, %), "
-          f"init spread over {a.seeds} camera seeds (max over keypoints of per-keypoint std / max deviation, mm)")
+          f"init spread over {a.seeds} camera seeds from {a.first_seed} "
+          f"(max over keypoints of per-keypoint std / max deviation, mm)")
     print_table(rows)
 
 
