@@ -124,6 +124,16 @@ def _lying_rope(length: float = 0.3, radius: float = 0.007) -> tuple[np.ndarray,
     return c, S.tube_mesh(c, radius)
 
 
+def _rope_on_table(cam, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``_lying_rope`` rendered with noise: centreline (M, 3) m, table-only and scene depths (H, W) m, rope pixels."""
+    K, T = cam
+    rng = np.random.default_rng(seed)
+    c, rope = _lying_rope()
+    table = S.render_depth([S.table_mesh()], K, T, (H, W), rng=rng)
+    depth = S.render_depth([S.table_mesh(), rope], K, T, (H, W), rng=rng)
+    return c, table, depth, S.render_depth([rope], K, T, (H, W)) > 0
+
+
 def test_support_plane_is_the_table(cam):
     from tracking.segmentation import support_plane
 
@@ -145,11 +155,7 @@ def test_attached_growth_completes_an_unmoved_end_lying_on_the_table(cam):
     from tracking.segmentation import Segmentation, grow_attached_tubes, support_plane, voxel_downsample
 
     K, T = cam
-    rng = np.random.default_rng(1)
-    c, rope = _lying_rope()
-    table = S.render_depth([S.table_mesh()], K, T, (H, W), rng=rng)
-    depth = S.render_depth([S.table_mesh(), rope], K, T, (H, W), rng=rng)
-    on_rope = S.render_depth([rope], K, T, (H, W)) > 0
+    c, table, depth, on_rope = _rope_on_table(cam, 1)
     pts, _ = depth_to_points(depth, K, T, on_rope)
     pts = pts[pts[:, 2] > 0.004]  # the rope's upper part, as differencing sees it
     moved = voxel_downsample(pts[pts[:, 0] < 0.15 - 0.025], P.voxel_m)  # the last 2.5 cm did not move
@@ -240,11 +246,7 @@ def test_refined_1d_cloud_regrows_its_unmoved_end_at_full_resolution(cam):
     from tracking.segmentation import refine_object_cloud, support_plane, voxel_downsample
 
     K, T = cam
-    rng = np.random.default_rng(5)
-    c, rope = _lying_rope()
-    table = S.render_depth([S.table_mesh()], K, T, (H, W), rng=rng)
-    depth = S.render_depth([S.table_mesh(), rope], K, T, (H, W), rng=rng)
-    on_rope = S.render_depth([rope], K, T, (H, W)) > 0
+    c, table, depth, on_rope = _rope_on_table(cam, 5)
     s = 4
     coarse_pts, _ = depth_to_points(depth[::s, ::s], decimated_intrinsics(K, s), T, on_rope[::s, ::s])
     coarse_pts = coarse_pts[(coarse_pts[:, 2] > 0.004) & (coarse_pts[:, 0] < 0.15 - 0.03)]  # the end did not move
