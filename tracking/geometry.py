@@ -74,6 +74,23 @@ def scale_intrinsics(K: np.ndarray, s: float) -> np.ndarray:
     return Ks
 
 
+def pixel_mask(
+    points: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, shape: tuple[int, int]
+) -> tuple[np.ndarray, float]:
+    """The pixels (H, W) bool that points (N, 3) float64 m world fall on (rounded; those in front
+    of the camera and inside the image), and the points' median depth, m (1.0 when there are none)."""
+    H, W = shape
+    mask = np.zeros((H, W), bool)
+    uv, z = project_points(points, K, T_world_cam)
+    ok = z > 1e-6
+    if not ok.any():
+        return mask, 1.0
+    rc = np.rint(uv[ok, ::-1]).astype(np.int64)
+    inside = (rc[:, 0] >= 0) & (rc[:, 0] < H) & (rc[:, 1] >= 0) & (rc[:, 1] < W)
+    mask[rc[inside, 0], rc[inside, 1]] = True
+    return mask, float(np.median(z[ok]))
+
+
 def splat_mask(
     points: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, shape: tuple[int, int], radius_m: float
 ) -> np.ndarray:
@@ -82,24 +99,16 @@ def splat_mask(
     points: (N, 3) float64, metres, world frame. shape: (H, W) of the image K describes.
     Returns (H, W) bool.
     """
-    H, W = shape
-    mask = np.zeros((H, W), np.uint8)
-    if len(points) == 0:
-        return mask.astype(bool)
-    uv, z = project_points(points, K, T_world_cam)
-    ok = z > 1e-6
-    uv, z = uv[ok], z[ok]
+    mask, zmed = pixel_mask(points, K, T_world_cam, shape)
+    if not mask.any():
+        return mask
     f = 0.5 * (K[0, 0] + K[1, 1])
-    r_px = int(np.clip(np.ceil(radius_m * f / np.median(z)), 1, 25))
-    rc = np.rint(uv[:, ::-1]).astype(np.int64)
-    inside = (rc[:, 0] >= 0) & (rc[:, 0] < H) & (rc[:, 1] >= 0) & (rc[:, 1] < W)
-    mask[rc[inside, 0], rc[inside, 1]] = 1
+    r_px = int(np.clip(np.ceil(radius_m * f / zmed), 1, 25))
     dy, dx = np.mgrid[-r_px : r_px + 1, -r_px : r_px + 1]
     disc = ((dx**2 + dy**2) <= r_px**2 + 0.5).astype(np.uint8)
-    mask = cv2.dilate(mask, disc)  # union of the discs centred on the points
-    k = np.ones((3, 3), np.uint8)
-    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, k)
-    return mask.astype(bool)
+    out = cv2.dilate(mask.astype(np.uint8), disc)  # union of the discs centred on the points
+    out = cv2.morphologyEx(out, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
+    return out.astype(bool)
 
 
 def edge_samples(X: np.ndarray, edges: np.ndarray, n: int) -> np.ndarray:

@@ -18,7 +18,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from tracking.geometry import depth_to_points, project_points
+from tracking.geometry import depth_to_points, pixel_mask
 from tracking.params import TrackingParams
 
 
@@ -327,13 +327,7 @@ def segment_by_difference(
     seg = _cluster(depth1, appeared, K, T_world_cam, params, None)
     if not grow or params.grow_step_m <= 0 or len(seg.points) == 0:
         return seg
-    uv, _ = project_points(seg.points, K, T_world_cam)
-    rc = np.rint(uv[:, ::-1]).astype(np.int64)
-    H, W = depth1.shape
-    ok = (rc[:, 0] >= 0) & (rc[:, 0] < H) & (rc[:, 1] >= 0) & (rc[:, 1] < W)
-    seeds = np.zeros((H, W), bool)
-    seeds[rc[ok, 0], rc[ok, 1]] = True
-    seeds &= appeared
+    seeds = pixel_mask(seg.points, K, T_world_cam, depth1.shape)[0] & appeared
     candidate = appeared | vanished
     if arm_mask is not None:
         candidate &= ~arm_mask
@@ -422,13 +416,9 @@ def grow_attached_tubes(
     if reach <= 0 or len(seg.points) == 0:
         return seg
     H, W = depth1.shape
-    uv, z = project_points(seg.points, K, T_world_cam)
-    rc = np.rint(uv[:, ::-1]).astype(np.int64)
-    ok = (rc[:, 0] >= 0) & (rc[:, 0] < H) & (rc[:, 1] >= 0) & (rc[:, 1] < W)
-    seeds = np.zeros((H, W), bool)
-    seeds[rc[ok, 0], rc[ok, 1]] = True
+    seeds, zmed = pixel_mask(seg.points, K, T_world_cam, (H, W))
     # the object's pixels: the projected voxels dilated to the voxel's footprint
-    px_m = float(np.median(z)) / float(K[0, 0])
+    px_m = zmed / float(K[0, 0])
     vox_px = max(1, int(np.ceil(params.voxel_m / px_m)))
     obj = cv2.dilate(seeds.astype(np.uint8), np.ones((vox_px, vox_px), np.uint8)).astype(bool)
     r_px = int(np.ceil(reach / px_m))
@@ -497,13 +487,9 @@ def refine_object_cloud(
     if len(cloud) == 0:
         return cloud
     H, W = depth.shape
-    uv, z = project_points(cloud, K, T_world_cam)
-    rc = np.rint(uv[:, ::-1]).astype(np.int64)
-    ok = (rc[:, 0] >= 0) & (rc[:, 0] < H) & (rc[:, 1] >= 0) & (rc[:, 1] < W)
-    mask = np.zeros((H, W), np.uint8)
-    mask[rc[ok, 0], rc[ok, 1]] = 1
-    r = max(1, int(np.ceil(params.voxel_m * float(K[0, 0]) / float(np.median(z)))))
-    mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)).astype(bool)
+    on, zmed = pixel_mask(cloud, K, T_world_cam, (H, W))
+    r = max(1, int(np.ceil(params.voxel_m * float(K[0, 0]) / zmed)))
+    mask = cv2.dilate(on.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)).astype(bool)
     valid = valid_depth(depth, params)
     arm = None if arm_mask is None else _full_size(arm_mask, (H, W))
     if arm is not None:
