@@ -291,6 +291,7 @@ def contour_3d(
     T_world_cam: np.ndarray,
     params: TrackingParams,
     held: np.ndarray | None = None,
+    robust: bool = False,
 ) -> Contour3D | None:
     """Outer contour of a 2D object's cloud (N, 3) m split at four corners into lifted sides; None if no contour.
 
@@ -299,6 +300,12 @@ def contour_3d(
     nearest a held point (``held`` (H, 3) m: TCPs of closed grippers, the cloth's held corners) is
     replaced by the contour point nearest that point's projection. Corner 0 is the one nearest the
     image's top-left, sides follow the contour order.
+
+    robust (initialisation): a contour pixel is lifted as the median of the cloud points projected
+    near it (``SIDE_LIFT_M``, ``SIDE_LIFT_K``), not the nearest one: a boundary voxel is partly
+    filled and its centroid wanders with the edge's dropouts (init spread 1.8 vs 2.0 mm). Per frame
+    the nearest point is kept: on a folded cloth the median blends the fold's layers at the contour
+    (measured: fast-speed cloth Abs 3.6 vs 3.8 mm, E<5 84 vs 72 %).
     """
     if len(cloud) < 10:
         return None
@@ -336,9 +343,10 @@ def contour_3d(
     dense = [cc[ci[k] : ci[k + 1] + 1] for k in range(4)]
     sides_uv = [dense[0], dense[1], dense[2][::-1], dense[3][::-1]]
     tree_uv = cKDTree(uv)
-    # robust lift (median of the neighbours, not the nearest voxel): a boundary voxel is partly
-    # filled, its centroid wanders with the edge's dropouts and flying pixels
-    lifted = [lift_pixels(s, uv, cloud, SIDE_LIFT_M / px_m, SIDE_LIFT_K, tree_uv) for s in sides_uv]
+    if robust:
+        lifted = [lift_pixels(s, uv, cloud, SIDE_LIFT_M / px_m, SIDE_LIFT_K, tree_uv) for s in sides_uv]
+    else:
+        lifted = [cloud[tree_uv.query(s)[1]] for s in sides_uv]
     lengths = np.array([_polyline_length(_smooth_polyline(p, max(3, int(0.01 / px_m)))) for p in lifted])
     return Contour3D(lifted, sides_uv, lengths, Kc, uv, tree_uv, px_m, np.asarray(T_world_cam, np.float64))
 

@@ -295,7 +295,7 @@ def initialise_2d(
     surface can reach). held: (H, 3) m TCPs of closed grippers: they pick the held corners of the
     contour, and a grid corner within ``grasp_gate_m`` of one is placed at it.
     """
-    ct = contour_3d(cloud, K, T_world_cam, params, held)
+    ct = contour_3d(cloud, K, T_world_cam, params, held, robust=True)
     if ct is None:
         raise InitialisationError("no contour in the segmented cloud")
     R, C = params.grid_rows, params.grid_cols
