@@ -94,7 +94,7 @@ class TrackingParams:
     voxel_m: float = 0.004
     dbscan_eps_m: float = 0.015
     dbscan_min_points: int = 3
-    dbscan_voxel_m: float = 0.006
+    dbscan_voxel_m: float = 0.009
     min_cluster_points: int = 10
     cluster_keep_fraction: float = 0.05
     cluster_keep_gap_m: float = 0.08
