@@ -501,11 +501,7 @@ def refine_object_cloud(
     if refs is not None and params.grow_step_m > 0 and len(pts):
         seeds = np.zeros((H, W), bool)
         seeds[pix[near, 0], pix[near, 1]] = True
-        refs = np.asarray(refs, np.float32).reshape(-1, *np.shape(refs)[-2:])
-        up = np.stack([cv2.resize(r, (W, H), interpolation=cv2.INTER_NEAREST) for r in refs])
-        appeared, vanished = difference_masks(up, depth, params)
-        grown = grow_depth_region(depth, seeds, ((appeared | vanished) & valid) | seeds, params.grow_step_m)
-        extra, _ = depth_to_points(depth, K, T_world_cam, grown & ~seeds)
+        extra, _ = depth_to_points(depth, K, T_world_cam, _regrow(depth, seeds, refs, valid, params) & ~seeds)
         pts = np.concatenate([pts, extra])
     if not len(pts):
         return cloud
@@ -513,6 +509,19 @@ def refine_object_cloud(
     if support is not None:
         out = grow_attached_tubes(depth, Segmentation(out, len(pts), 1), K, T_world_cam, params, arm, support).points
     return out
+
+
+def _regrow(
+    depth: np.ndarray, seeds: np.ndarray, refs: np.ndarray, valid: np.ndarray, params: TrackingParams
+) -> np.ndarray:
+    """Pixels (H, W) bool of a full-resolution depth (H, W) m changed against the references refs
+    (R, h, w) m (resized nearest) and reachable from seeds (H, W) bool through depth steps of at
+    most ``grow_step_m``; only ``valid`` (H, W) bool pixels are candidates."""
+    H, W = depth.shape
+    refs = np.asarray(refs, np.float32).reshape(-1, *np.shape(refs)[-2:])
+    up = np.stack([cv2.resize(ref, (W, H), interpolation=cv2.INTER_NEAREST) for ref in refs])
+    appeared, vanished = difference_masks(up, depth, params)
+    return grow_depth_region(depth, seeds, ((appeared | vanished) & valid) | seeds, params.grow_step_m)
 
 
 def _full_size(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
