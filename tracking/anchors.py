@@ -453,9 +453,9 @@ def detect_anchors_2d(
     if ct is None:
         return np.zeros((0, 3)), np.zeros(0, np.int64)
     R, C = params.grid_rows, params.grid_cols
-    X = lift_grid(ct, cloud, R, C)
+    _, X = grid_boundary(ct, R, C)  # the boundary nodes only: the interior is not an anchor
     bi, kinds = boundary_indices(R, C)
-    return X[bi], kinds
+    return X.reshape(-1, 3)[bi], kinds
 
 
 __all__ = [
