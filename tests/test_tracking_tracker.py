@@ -122,3 +122,18 @@ def test_consistent_anchors_leave_a_torn_edge_free():
     ok = consistent_anchors(topo, np.arange(4), pos, 4, 0.15)
     assert ok.tolist() == [True, True, False, False]
     assert consistent_anchors(topo, np.array([0, 3]), pos[[0, 3]], 4, 0.15).all()  # no edge between them
+
+
+def test_consistent_anchors_check_a_lone_anchor_against_its_neighbours_prediction():
+    """A free end matched to a spur 6 cm off is left free: its neighbour is predicted a rest length away."""
+    from tracking.init import Topology
+    from tracking.tracker import consistent_anchors
+
+    E = np.array([[0, 1], [1, 2], [2, 3]])
+    topo = Topology("1d", E, np.full(3, 0.04), np.array([0, 3]), np.zeros(2, np.int64), [np.arange(4)])
+    X_pred = np.array([[0.0, 0, 0], [0.04, 0, 0], [0.08, 0, 0], [0.12, 0, 0]])
+    good = np.array([[0.0, 0.005, 0], [0.125, 0.0, 0]])  # a few mm from the prediction
+    spur = np.array([[0.0, 0.005, 0], [0.12, 0.06, 0]])  # the end's detection is a spur
+    assert consistent_anchors(topo, np.array([0, 3]), good, 4, 0.15, X_pred, 0.02).all()
+    assert consistent_anchors(topo, np.array([0, 3]), spur, 4, 0.15, X_pred, 0.02).tolist() == [True, False]
+    assert consistent_anchors(topo, np.array([0, 3]), spur, 4, 0.15).all()  # without the prediction: unseen

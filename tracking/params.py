@@ -71,6 +71,9 @@ class TrackingParams:
       anchor_regate_m: leftover anchors and detections are matched again within this wider gate, m.
       anchor_edge_tol: two re-detected anchors joined by an edge whose length differs from its rest
         length by more than this fraction of it are both left free this frame (0: off).
+      anchor_neighbour_slack_m: so is a re-detected anchor whose distance to the predicted position
+        of a neighbour that is not one differs from their edge's rest length by more than
+        anchor_edge_tol of it plus this, m (a rope's free end matched to a spur a few cm off).
       grasp_gate_m: a TCP farther than this from every keypoint holds nothing, m.
       causal_window, symmetric_window: moving-average windows, frames.
       min_object_points: fewer segmented points than this is a bad frame.
@@ -139,6 +142,7 @@ class TrackingParams:
     anchor_gate_m: float = 0.05
     anchor_regate_m: float = 0.15
     anchor_edge_tol: float = 0.15
+    anchor_neighbour_slack_m: float = 0.02
     grasp_gate_m: float = 0.05
     causal_window: int = 3
     symmetric_window: int = 5

@@ -115,12 +115,21 @@ def update_grasp_indices(
 
 
 def consistent_anchors(
-    topology: Topology, idx: np.ndarray, pos: np.ndarray, n_keypoints: int, tol: float
+    topology: Topology,
+    idx: np.ndarray,
+    pos: np.ndarray,
+    n_keypoints: int,
+    tol: float,
+    X_pred: np.ndarray | None = None,
+    slack_m: float = 0.0,
 ) -> np.ndarray:
     """Which re-detected anchors (A,) bool agree with the topology: anchors of keypoints idx (A,) at
     pos (A, 3) m; an edge of the topology joining two of them whose length differs from its rest
     length by more than ``tol`` times that rest length condemns both ends (a contour side shortened
-    by a fold, a detection matched to the wrong anchor); the others are kept."""
+    by a fold, a detection matched to the wrong anchor). With the predicted keypoints X_pred (N, 3) m,
+    an edge from a re-detected anchor to a keypoint that is not one condemns the anchor when the
+    anchor's distance to that keypoint's prediction is off by more than ``tol`` of the rest length
+    plus ``slack_m`` (a free end matched to a spur: no other anchor is its neighbour). The others are kept."""
     at = np.full((n_keypoints, 3), np.nan)
     at[idx] = pos
     e = topology.edges
@@ -128,6 +137,14 @@ def consistent_anchors(
     bad = np.abs(L - topology.rest) > tol * topology.rest  # nan (an end not detected) compares False
     condemned = np.zeros(n_keypoints, bool)
     condemned[e[bad].ravel()] = True
+    if X_pred is not None:
+        det = np.isfinite(at[:, 0])
+        one = det[e[:, 0]] != det[e[:, 1]]
+        k = np.where(det[e[:, 0]], e[:, 0], e[:, 1])[one]
+        j = np.where(det[e[:, 0]], e[:, 1], e[:, 0])[one]
+        rest = topology.rest[one]
+        Lp = np.linalg.norm(at[k] - X_pred[j], axis=1)
+        condemned[k[np.abs(Lp - rest) > tol * rest + slack_m]] = True
     return ~condemned[idx]
 
 
@@ -165,7 +182,9 @@ def track_frame(
     idx = [ai[m >= 0]]
     pos = [det_pos[m[m >= 0]]]
     if params.anchor_edge_tol > 0:
-        ok = consistent_anchors(topology, idx[0], pos[0], len(X_prev), params.anchor_edge_tol)
+        ok = consistent_anchors(
+            topology, idx[0], pos[0], len(X_prev), params.anchor_edge_tol, Xm, params.anchor_neighbour_slack_m
+        )
         idx, pos = [idx[0][ok]], [pos[0][ok]]
     if tcp is not None and grasp_idx is not None:
         g = np.asarray(grasp_idx, np.int64)
