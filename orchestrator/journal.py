@@ -46,7 +46,7 @@ def key_fields(key: RunKey) -> dict[str, Any]:
     return {"object": key[0], "program": key[1], "speed": key[2], "repeat": key[3]}
 
 
-def _key_of(record: dict[str, Any]) -> RunKey:
+def record_key(record: dict[str, Any]) -> RunKey:
     """The run key of a ``start`` or ``run`` record (KeyError / ValueError when it has none)."""
     return (str(record["object"]), str(record["program"]), str(record["speed"]), int(record["repeat"]))
 
@@ -152,7 +152,7 @@ class JournalState:
             if r.get("type") not in ("start", "run") or r.get("pass") != st.pass_index:
                 continue
             try:
-                key = _key_of(r)
+                key = record_key(r)
             except (KeyError, TypeError, ValueError):
                 log.warning("ignoring a journal record without object/program/speed/repeat: %s", r)
                 continue

@@ -27,7 +27,7 @@ from drivers.types import RGBDFrame
 from orchestrator import __version__
 from orchestrator.bus import Bus
 from orchestrator.config import Config, ObjectConfig
-from orchestrator.journal import Journal, RunKey, key_fields, now_iso, run_key
+from orchestrator.journal import Journal, RunKey, key_fields, now_iso, record_key, run_key
 from orchestrator.plan import RunItem, build_plan
 from orchestrator.programs import ProgramRejected, plan_motion
 from orchestrator.progress import Progress
@@ -488,7 +488,7 @@ class Session:
             elif final:
                 self._journal.append({**record, "outcome": "failed",
                                       "reason": f"episode file(s) not finished: {', '.join(missing)}"})
-                self._done_keys.discard(_record_key(record))
+                self._done_keys.discard(record_key(record))
             else:
                 keep.append((record, episodes))
         self._pending = keep
@@ -732,8 +732,3 @@ class Session:
                 "u (12,) = [left TCP xyz m, left rotvec rad, right TCP xyz m, right rotvec rad], world frame"
             ),
         }
-
-
-def _record_key(record: dict[str, Any]) -> RunKey:
-    """The run key of a journal record this session wrote."""
-    return (record["object"], record["program"], record["speed"], record["repeat"])
