@@ -22,7 +22,7 @@ from drivers.clock import SimClock
 from drivers.config import FakeArmConfig, FakeCameraConfig, FakeGripperConfig, Pose, SimObjectConfig
 from drivers.fake.devices import FakeArm, FakeCamera, FakeGripper, SimStation
 from drivers.fake.render import mock_camera_pose
-from drivers.types import JointMotion
+from tdcommon.types import JointMotion
 
 MOCK = Path(__file__).resolve().parents[1] / "configs" / "mock.yaml"
 HOME = {

@@ -44,17 +44,17 @@ from scipy.optimize import linear_sum_assignment
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from drivers.clock import SimClock  # noqa: E402
-from drivers.types import GroundTruth  # noqa: E402
 from orchestrator.config import DEFAULT_CONFIG, Config, ObjectConfig, load_config  # noqa: E402
 from orchestrator.plan import RunItem  # noqa: E402
 from orchestrator.programs import plan_motion  # noqa: E402
 from orchestrator.session import Station  # noqa: E402
+from orchestrator.worker import KIND, ArmModel, tracking_params  # noqa: E402
+from tdcommon.types import GroundTruth  # noqa: E402
 from tracking.anchors import CORNER  # noqa: E402
 from tracking.init import InitialisationError  # noqa: E402
 from tracking.metrics import distance_to_polyline, sequence_summary  # noqa: E402
 from tracking.params import TrackingParams  # noqa: E402
 from tracking.pipeline import LivePipeline, PipelineOutput  # noqa: E402
-from tracking.worker import KIND, ArmModel, tracking_params  # noqa: E402
 
 OBJECTS = ("rope", "branched_rope", "cloth")
 N_KEYPOINTS = {"rope": 20, "branched_rope": 25, "cloth": 36}

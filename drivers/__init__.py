@@ -6,7 +6,7 @@ mock mode and the tests need none of them.
 """
 
 from drivers.base import Arm, Gripper, RGBDCamera, create_arm, create_camera, create_gripper, register
-from drivers.types import CameraIntrinsics, GripperState, JointState, RGBDFrame
+from tdcommon.types import CameraIntrinsics, GripperState, JointState, RGBDFrame
 
 __all__ = [
     "Arm",

@@ -10,7 +10,7 @@ from __future__ import annotations
 import importlib
 from typing import Any, Protocol, runtime_checkable
 
-from drivers.types import CameraIntrinsics, GripperState, JointMotion, JointState, RGBDFrame
+from tdcommon.types import CameraIntrinsics, GripperState, JointMotion, JointState, RGBDFrame
 
 
 class DeviceError(RuntimeError):

@@ -1,6 +1,6 @@
 """Franka Emika Panda arm and Franka Hand through franky-control (FCI).
 
-A :class:`~drivers.types.JointMotion` becomes one franky ``JointWaypointMotion`` over the
+A :class:`~tdcommon.types.JointMotion` becomes one franky ``JointWaypointMotion`` over the
 segment targets: each ``JointWaypoint`` carries its segment's duration as ``minimum_time``
 (franky hands it to ruckig as the segment's ``minimum_duration``) and, when
 ``segment_dynamics`` is on, the segment's ``limit_scale`` as its acceleration/jerk factor.
@@ -19,7 +19,7 @@ import numpy as np
 from drivers.base import DeviceError, DriverUnavailable
 from drivers.clock import Clock, RealClock
 from drivers.config import FrankaArmConfig, FrankaHandConfig
-from drivers.types import GripperState, JointMotion, JointState
+from tdcommon.types import GripperState, JointMotion, JointState
 
 INSTALL_HINT = "pip install 'trackdeform3d[franka]'"
 

@@ -20,7 +20,7 @@ import numpy as np
 from drivers.base import DeviceError, DriverUnavailable
 from drivers.clock import Clock, RealClock
 from drivers.config import OakCameraConfig
-from drivers.types import CameraIntrinsics, RGBDFrame
+from tdcommon.types import CameraIntrinsics, RGBDFrame
 
 INSTALL_HINT = "pip install 'trackdeform3d[oak]'"
 DEPTH_SCALE = 0.001  # depthai depth frames are millimetres

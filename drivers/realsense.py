@@ -16,7 +16,7 @@ import numpy as np
 from drivers.base import DeviceError, DriverUnavailable
 from drivers.clock import Clock, RealClock
 from drivers.config import RealSenseCameraConfig
-from drivers.types import CameraIntrinsics, RGBDFrame
+from tdcommon.types import CameraIntrinsics, RGBDFrame
 
 INSTALL_HINT = "pip install 'trackdeform3d[realsense]' (and the system library libusb-1.0-0)"
 

@@ -22,7 +22,7 @@ import numpy as np
 from drivers.base import DeviceError
 from drivers.clock import Clock, RealClock
 from drivers.config import ReplayCameraConfig
-from drivers.types import CameraIntrinsics, RGBDFrame
+from tdcommon.types import CameraIntrinsics, RGBDFrame
 
 log = logging.getLogger(__name__)
 
@@ -30,14 +30,14 @@ NOMINAL_HFOV_DEG = 69.0  # intrinsics reported before connect when the file cann
 
 
 class ReplayCamera:
-    """RGBDCamera playing ``config.path`` (via :func:`orchestrator.datasets.read_sequence`) at ``config.fps``."""
+    """RGBDCamera playing ``config.path`` (via :func:`tdrecord.read_sequence`) at ``config.fps``."""
 
     def __init__(self, config: ReplayCameraConfig, *, clock: Clock | None = None, **context: Any) -> None:
         self.id = config.id
         self.config = config
         self.clock: Clock = clock if clock is not None else RealClock()
         self.path = Path(config.path).expanduser()
-        self.sequence: Any = None  # orchestrator.datasets.Sequence once connected
+        self.sequence: Any = None  # tdrecord.Sequence once connected
         self.T_world_cam: np.ndarray | None = None  # (4, 4) the recording's camera pose, once known
         self.frames_delivered = 0
         self.loops = 0  # how many times the data restarted
@@ -57,7 +57,7 @@ class ReplayCamera:
     def intrinsics(self) -> CameraIntrinsics:
         """The recording's intrinsics (read cheaply from its calibration); nominal ones if it cannot be read."""
         if self._intrinsics is None:
-            from orchestrator.datasets import read_calibration
+            from tdrecord import read_calibration
 
             try:
                 cal = read_calibration(self.path)
@@ -70,7 +70,7 @@ class ReplayCamera:
 
     def connect(self) -> None:
         """Read the recording's index (first connect) and continue where the last close() stopped."""
-        from orchestrator.datasets import read_sequence
+        from tdrecord import read_sequence
 
         with self._lock:
             if self.sequence is None:
@@ -121,9 +121,7 @@ class ReplayCamera:
 
     # ------------------------------------------------------------------ internals
     def _set_calibration(self, K: np.ndarray, width: int, height: int, T_world_cam: np.ndarray) -> None:
-        self._intrinsics = CameraIntrinsics(
-            int(width), int(height), float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
-        )
+        self._intrinsics = CameraIntrinsics.from_K(K, width, height)
         self.T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
         if (width, height) != (self.config.width, self.config.height):
             log.warning(

@@ -16,7 +16,7 @@ from typing import Any
 from drivers.base import DeviceError, DriverUnavailable
 from drivers.clock import Clock, RealClock
 from drivers.config import SerialGripperConfig
-from drivers.types import GripperState
+from tdcommon.types import GripperState
 
 ACTION_REGISTER = 0x03E8
 STATUS_REGISTER = 0x07D0

@@ -1,6 +1,6 @@
 """Universal Robots arm through ur-rtde: servoJ streaming of the timed joint samples.
 
-A background thread resamples the :class:`~drivers.types.JointMotion` at ``servo_rate`` Hz
+A background thread resamples the :class:`~tdcommon.types.JointMotion` at ``servo_rate`` Hz
 and sends each sample with ``servoJ(q, speed, acceleration, dt, lookahead_time, gain)``,
 paced by ur-rtde's ``initPeriod()``/``waitPeriod()``; it holds the final sample for one
 lookahead so the arm settles, then ``servoStop()``. UR arms have six joints: the first six
@@ -21,7 +21,7 @@ import numpy as np
 from drivers.base import DeviceError, DriverUnavailable
 from drivers.clock import Clock, RealClock
 from drivers.config import URArmConfig
-from drivers.types import JointMotion, JointState
+from tdcommon.types import JointMotion, JointState
 
 INSTALL_HINT = "pip install 'trackdeform3d[ur]'"
 UR_DOF = 6

@@ -163,7 +163,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     """Print what an episode file holds: metadata and message counts per channel."""
     from mcap.reader import make_reader
 
-    from orchestrator.recorder import read_episode_metadata
+    from tdrecord import read_episode_metadata
 
     for p in args.files:
         path = Path(p)

@@ -17,8 +17,8 @@ from orchestrator.config import DEFAULT_CONFIG
 
 
 def cmd_worker(args: argparse.Namespace) -> int:
-    """Run the tracking worker (same as ``python -m tracking.worker``)."""
-    from tracking.worker import main as worker_main
+    """Run the tracking worker (same as ``python -m orchestrator.worker``)."""
+    from orchestrator.worker import main as worker_main
 
     argv = [args.config] + [x for e in (args.connect or []) for x in ("--connect", e)]
     if args.max_frames:
@@ -42,7 +42,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
     """Print live keypoint messages as they arrive (Ctrl-C to stop)."""
     from orchestrator.bus import Bus, local_endpoints
     from orchestrator.config import load_config
-    from orchestrator.wire import decode_json
+    from tdcommon.wire import decode_json
 
     config = load_config(args.config)
     endpoints = args.connect or config.bus.connect or local_endpoints(config.bus.listen)
@@ -71,7 +71,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
 
 def _arm_geometry(seq: Any, i: int, arms: Any) -> tuple[Any, Any, Any, Any]:
     """Arm meshes, TCPs and closed flags for frame ``i`` of a dataset (whole arms, or hands at the TCPs)."""
-    from trajectories.kinematics import hand_mesh
+    from tdcommon.robot import hand_mesh
 
     closed = None
     if seq.grasped_left is not None and seq.grasped_right is not None:
@@ -95,9 +95,9 @@ def _arm_geometry(seq: Any, i: int, arms: Any) -> tuple[Any, Any, Any, Any]:
 
 def track_sequence(seq: Any, params: Any, kind: str | None, progress: bool = True) -> dict[str, Any]:
     """Run the pipeline over every frame; returns raw keypoints (T, N, 3) m (NaN before init), topology, metrics."""
+    from orchestrator.worker import ArmModel
     from tracking.metrics import sequence_summary, surface_error_mm
     from tracking.pipeline import LivePipeline
-    from tracking.worker import ArmModel
 
     arms = ArmModel(seq.T_world_base) if seq.T_world_base is not None else None
     pipe = LivePipeline(params, seq.K, seq.T_world_cam, kind)
@@ -146,9 +146,9 @@ def track_sequence(seq: Any, params: Any, kind: str | None, progress: bool = Tru
 def cmd_track(args: argparse.Namespace) -> int:
     """Track a recorded sequence offline and write ``3d_keypoints.npz`` like the paper's code."""
     from orchestrator.config import load_config
-    from orchestrator.datasets import DatasetError, read_sequence, write_reference_npz
+    from orchestrator.worker import KIND, tracking_params
+    from tdrecord import DatasetError, read_sequence, write_reference_npz
     from tracking.tracker import smooth_symmetric
-    from tracking.worker import KIND, tracking_params
 
     try:
         seq = read_sequence(args.input)

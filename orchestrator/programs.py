@@ -8,8 +8,8 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from drivers.types import JointMotion
 from orchestrator.config import Config
+from tdcommon.types import JointMotion
 from trajectories.program import Program, ProgramError, load_program
 from trajectories.timing import TimedProgram, speed_profile, time_program
 

@@ -5,7 +5,7 @@ Channels (Foxglove schemas where one fits, so a file opens in Foxglove):
 - ``/cam/<id>/color``  foxglove.RawImage rgb8;  ``/cam/<id>/depth``  foxglove.RawImage 16UC1 (mm)
 - ``/cam/<id>/calibration``  foxglove.CameraCalibration (frame ``cam``)
 - ``/cam/<id>/frame_info``  JSON {frame_number, device_stamp, host_stamp}
-- ``/arms/state``  JSON (see orchestrator.wire);  ``/tf``  foxglove.FrameTransforms (world -> cam, TCPs)
+- ``/arms/state``  JSON (see tdcommon.wire);  ``/tf``  foxglove.FrameTransforms (world -> cam, TCPs)
 - ``/keypoints``  JSON (trackdeform.Keypoints/1, exact arrays);  ``/keypoints/scene``  foxglove.SceneUpdate
 - ``/ground_truth/keypoints``  JSON (mock mode)
 
@@ -18,19 +18,19 @@ from __future__ import annotations
 import json
 import logging
 import os
-from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
-from drivers.types import RGBDFrame
 from orchestrator.fsutil import fsync_dir
+from tdcommon.types import RGBDFrame
+from tdcommon.wire import ground_truth_to_json
+from tdrecord.episodes import ACTIVE_SUFFIX
 
 log = logging.getLogger(__name__)
 
-ACTIVE_SUFFIX = ".mcap.active"
 TF_RATE = 30.0  # Hz: TCP frames on /tf
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
@@ -123,12 +123,10 @@ class EpisodeWriter:
             data=np.ascontiguousarray(frame.color).tobytes(),
         )
         self._add(f"{cam}/color", color.SerializeToString(), t, frame.host_stamp)
-        depth_mm = frame.depth if abs(frame.depth_scale - 0.001) < 1e-9 else np.clip(
-            np.round(frame.depth.astype(np.float64) * frame.depth_scale * 1000.0), 0, 65535
-        ).astype(np.uint16)
+        depth_mm = frame.depth_mm()
         depth = self._RawImage(
             timestamp=ts, frame_id="cam", width=w, height=h, encoding="16UC1", step=w * 2,
-            data=np.ascontiguousarray(depth_mm, dtype="<u2").tobytes(),
+            data=np.ascontiguousarray(depth_mm).tobytes(),
         )
         self._add(f"{cam}/depth", depth.SerializeToString(), t, frame.host_stamp)
         self._add_json(
@@ -140,9 +138,7 @@ class EpisodeWriter:
             gt = frame.ground_truth
             self._add_json(
                 "/ground_truth/keypoints",
-                {"frame_number": frame.frame_number, "keypoints": np.round(gt.keypoints, 6).tolist(),
-                 "edges": gt.edges.tolist(), "anchors": gt.anchors.tolist(), "radius": gt.radius,
-                 "category": gt.category, "centreline": _subsample(gt.centreline, 400)},
+                {"frame_number": frame.frame_number, **ground_truth_to_json(gt)},
                 t,
             )
         self.n_frames += 1
@@ -232,12 +228,6 @@ class EpisodeWriter:
                 self.closed = True
 
 
-def _subsample(points: np.ndarray, n: int) -> list[list[float]]:
-    """At most ``n`` evenly picked rows of points (M, 3), rounded to 0.1 mm, as lists."""
-    idx = np.unique(np.linspace(0, len(points) - 1, min(n, len(points))).round().astype(int)) if len(points) else []
-    return np.round(np.asarray(points)[idx], 4).tolist()
-
-
 def _scene_update(SceneUpdate: Any, msg: dict[str, Any], t: float) -> Any:
     """Keypoints as spheres and edges as a line list, in the world frame."""
     from foxglove_schemas_protobuf.Color_pb2 import Color
@@ -269,17 +259,6 @@ def _scene_update(SceneUpdate: Any, msg: dict[str, Any], t: float) -> Any:
 
 
 # ---------------------------------------------------------------------- reading and recovery
-def read_episode_metadata(path: Path) -> dict[str, Any]:
-    """The ``episode`` metadata record of a finished file, values decoded from JSON."""
-    from mcap.reader import make_reader
-
-    with open(path, "rb") as f:
-        for m in make_reader(f).iter_metadata():
-            if m.name == "episode":
-                return {k: json.loads(v) for k, v in m.metadata.items()}
-    raise ValueError(f"{path}: no 'episode' metadata record")
-
-
 def recover_active(directory: Path, quarantine: str = "quarantine") -> list[tuple[Path, str]]:
     """Turn leftover ``*.mcap.active`` files into valid ``*.mcap`` files, or quarantine them.
 
@@ -346,15 +325,6 @@ def recover_active(directory: Path, quarantine: str = "quarantine") -> list[tupl
         log.warning("recovered %s (%d messages)", final, len(messages))
         results.append((final, f"recovered {len(messages)} messages"))
     return results
-
-
-def iter_topic(path: Path, topics: Iterable[str]) -> Iterable[tuple[str, int, bytes]]:
-    """(topic, log_time ns, raw data) for messages on ``topics`` in log-time order."""
-    from mcap.reader import make_reader
-
-    with open(path, "rb") as f:
-        for _schema, channel, message in make_reader(f).iter_messages(topics=list(topics)):
-            yield channel.topic, message.log_time, message.data
 
 
 class Recorder:

@@ -23,7 +23,6 @@ import numpy as np
 
 from drivers.base import Arm, DeviceError, Gripper, RGBDCamera, create_arm, create_camera, create_gripper
 from drivers.clock import Clock
-from drivers.types import RGBDFrame
 from orchestrator import __version__
 from orchestrator.bus import Bus
 from orchestrator.config import Config, ObjectConfig
@@ -32,8 +31,9 @@ from orchestrator.plan import RunItem, build_plan
 from orchestrator.programs import ProgramRejected, plan_motion
 from orchestrator.progress import Progress
 from orchestrator.recorder import Recorder, recover_active
-from orchestrator.wire import decode_json, encode_frame, encode_json
-from trajectories.kinematics import PandaKinematics, pose_to_input
+from tdcommon.robot import PandaKinematics, pose_to_input
+from tdcommon.types import RGBDFrame
+from tdcommon.wire import decode_json, encode_frame, encode_json
 
 log = logging.getLogger(__name__)
 ARMS = ("left", "right")

@@ -50,7 +50,7 @@ def start_worker(config: Config, out_dir: Path) -> WorkerProcess:
     cfg_path = out_dir / "worker_config.json"
     cfg_path.write_text(json.dumps(config.model_dump(mode="json"), indent=2))
     log_path = out_dir / "worker.log"
-    cmd = [sys.executable, "-m", "tracking.worker", str(cfg_path)]
+    cmd = [sys.executable, "-m", "orchestrator.worker", str(cfg_path)]
     for e in local_endpoints(config.bus.listen):
         cmd += ["--connect", e]
     with open(log_path, "ab") as logf:

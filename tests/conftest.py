@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.types import CameraIntrinsics, RGBDFrame
+from tdcommon.types import CameraIntrinsics, RGBDFrame
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from orchestrator.bus import Bus, local_endpoints
 from orchestrator.config import BusConfig
-from orchestrator.wire import encode_frame
+from tdcommon.wire import encode_frame
 from tests.conftest import REPO, make_frame
 
 
@@ -22,7 +22,7 @@ def test_subscriber_in_another_process_receives_frames(port: int) -> None:
         sys.path.insert(0, {str(REPO)!r})
         from orchestrator.bus import Bus
         from orchestrator.config import BusConfig
-        from orchestrator.wire import decode_frame
+        from tdcommon.wire import decode_frame
         bus = Bus(BusConfig(listen=[]), "t", listen=False, connect=["tcp/127.0.0.1:{port}"])
         sub = bus.subscribe(bus.key("cam", "cam0", "frame"), ring=4)
         print("ready", flush=True)

@@ -13,7 +13,7 @@ from orchestrator.bus import Bus
 from orchestrator.cli import main
 from orchestrator.config import BusConfig
 from orchestrator.recorder import EpisodeWriter
-from orchestrator.wire import encode_keypoints
+from tdcommon.wire import encode_keypoints
 from tests.conftest import REPO, make_frame
 
 CLI = [sys.executable, "-m", "orchestrator.cli"]

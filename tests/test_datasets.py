@@ -10,14 +10,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drivers.types import GroundTruth, RGBDFrame
-from orchestrator.datasets import (
+from orchestrator.recorder import EpisodeWriter, recover_active
+from tdcommon.transforms import invert_transform, matrix_to_pose7, pose7_to_matrix
+from tdcommon.types import GroundTruth, RGBDFrame
+from tdrecord import (
     DatasetError,
     FrameSource,
-    invert_transform,
-    matrix_to_pose7,
     nearest_index,
-    pose7_to_matrix,
     read_calibration,
     read_episodes,
     read_paper_layout,
@@ -26,7 +25,6 @@ from orchestrator.datasets import (
     write_paper_layout,
     write_reference_npz,
 )
-from orchestrator.recorder import EpisodeWriter, recover_active
 from tests.conftest import make_frame
 
 W, H = 64, 48

@@ -12,7 +12,7 @@ import pytest
 from drivers.base import DeviceError, DriverUnavailable, create_arm, create_gripper
 from drivers.config import FrankaArmConfig, FrankaHandConfig
 from drivers.franka import FrankaArm, FrankaHand
-from drivers.types import JointMotion
+from tdcommon.types import JointMotion
 from tests.doubles import fake_franky
 
 HOME = fake_franky.Robot.initial_q.copy()

@@ -10,7 +10,7 @@ import pytest
 
 from drivers.base import DeviceError, DriverUnavailable, create_arm
 from drivers.config import URArmConfig
-from drivers.types import JointMotion
+from tdcommon.types import JointMotion
 from tests.doubles import fake_rtde
 
 

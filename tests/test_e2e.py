@@ -14,8 +14,8 @@ from mcap.reader import make_reader
 from drivers.clock import SimClock
 from orchestrator.bus import Bus
 from orchestrator.config import DEFAULT_CONFIG, load_config
-from orchestrator.recorder import read_episode_metadata
 from orchestrator.session import Session
+from tdrecord import read_episode_metadata
 
 pytestmark = pytest.mark.slow
 

@@ -10,8 +10,8 @@ import pytest
 
 from drivers.clock import SimClock
 from orchestrator.config import DEFAULT_CONFIG, Config, load_config
-from orchestrator.recorder import read_episode_metadata
 from orchestrator.session import Session, SessionSummary, Station
+from tdrecord import read_episode_metadata
 from trajectories.program import Program, Waypoint, library_path, load_program, save_program
 
 # s after the station connects: mid-program (settle 0.5 s, program ~5.8 s at fast) and mid-episode (1 s episodes)

@@ -10,7 +10,7 @@ from drivers.clock import SimClock
 from drivers.config import FakeArmConfig, FakeCameraConfig, FakeGripperConfig, Pose, SimObjectConfig
 from drivers.fake.devices import FakeArm, SimStation
 from drivers.fake.render import mock_camera_pose
-from drivers.types import JointMotion
+from tdcommon.types import JointMotion
 
 HOME = {  # configs/mock.yaml: TCPs at (0.45, +-0.25, 0.40) pointing down
     "left": [-0.082209, -0.221521, -0.309478, -2.116897, -0.070888, 1.904804, 0.424088],

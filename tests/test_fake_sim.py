@@ -18,8 +18,8 @@ from drivers.fake.render import (
     tube_mesh,
 )
 from drivers.fake.sim_object import SimObject
-from drivers.types import CameraIntrinsics
-from trajectories.kinematics import PandaKinematics
+from tdcommon.robot import PandaKinematics
+from tdcommon.types import CameraIntrinsics
 
 CLOSED = {"left": True, "right": True}
 

@@ -22,8 +22,8 @@ from orchestrator.config import DEFAULT_CONFIG, Config, load_config
 from orchestrator.journal import JOURNAL_NAME, Journal, JournalError, JournalState, read_journal
 from orchestrator.plan import build_plan
 from orchestrator.progress import Progress
-from orchestrator.recorder import read_episode_metadata
 from orchestrator.session import Session, Station
+from tdrecord import read_episode_metadata
 from trajectories.program import library_path
 
 

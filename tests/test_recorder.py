@@ -13,7 +13,8 @@ import numpy as np
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from orchestrator.recorder import EpisodeWriter, Recorder, read_episode_metadata, recover_active
+from orchestrator.recorder import EpisodeWriter, Recorder, recover_active
+from tdrecord import read_episode_metadata
 from tests.conftest import REPO, make_frame
 
 

@@ -11,8 +11,8 @@ from drivers.base import DeviceError, RGBDCamera, create_camera
 from drivers.clock import SimClock
 from drivers.config import ReplayCameraConfig
 from drivers.replay import ReplayCamera
-from orchestrator.datasets import write_paper_layout
 from orchestrator.recorder import EpisodeWriter
+from tdrecord import write_paper_layout
 from tests.conftest import make_frame
 
 W, H = 64, 48

@@ -14,7 +14,7 @@ import pytest
 from drivers.base import Arm
 from orchestrator.config import DEFAULT_CONFIG, load_config
 from orchestrator.teach import INTERRUPTED, NOTHING_SAVED, SAVED, SAVED_WITH_PROBLEMS, teach_station
-from trajectories.kinematics import PandaKinematics
+from tdcommon.robot import PandaKinematics
 from trajectories.program import ProgramError, library_path, load_program
 from trajectories.safety import check_program
 from trajectories.timing import SLOW, time_program

@@ -19,8 +19,8 @@ from benchmarks.tracking import (
     simulate,
     station_config,
 )
+from orchestrator.worker import KIND
 from tracking.anchors import CORNER, JUNCTION, LEAF
-from tracking.worker import KIND
 
 pytestmark = pytest.mark.slow
 

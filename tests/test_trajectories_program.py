@@ -95,7 +95,7 @@ def test_library_lookup():
 
 
 def test_library_programs_start_holding_the_object():
-    from trajectories.kinematics import PandaKinematics
+    from tdcommon.robot import PandaKinematics
     from trajectories.safety import MOCK_BASES
 
     kin = {a: PandaKinematics(MOCK_BASES[a]) for a in ("left", "right")}

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from trajectories.kinematics import PandaKinematics, arm_inputs, arm_inputs_batch
+from tdcommon.robot import PandaKinematics, arm_inputs, arm_inputs_batch
 from trajectories.program import Program, Waypoint, library_path, load_program
 from trajectories.safety import MOCK_BASES, Workspace, check_program
 from trajectories.timing import MEDIUM, SLOW, fast, time_program

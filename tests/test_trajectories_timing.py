@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from trajectories.kinematics import joint_limits
+from tdcommon.robot import joint_limits
 from trajectories.program import Program, Waypoint, library_path, load_program
 from trajectories.timing import MEDIUM, SLOW, fast, speed_profile, time_program
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from orchestrator.wire import decode_frame, decode_json, encode_frame, encode_keypoints
+from tdcommon.wire import decode_frame, decode_json, encode_frame, encode_keypoints
 from tests.conftest import make_frame
 
 

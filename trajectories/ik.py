@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from trajectories.kinematics import N_JOINTS, PandaKinematics, joint_limits
+from tdcommon.robot import N_JOINTS, PandaKinematics, joint_limits
 
 
 class IKError(ValueError):

@@ -126,7 +126,7 @@ class Program(BaseModel):
 
 def limit_violations(program: Program, margin: float = 0.0) -> list[str]:
     """Every waypoint joint outside the Panda's position limits (shrunk by ``margin`` rad), as messages."""
-    from trajectories.kinematics import joint_limits
+    from tdcommon.robot import joint_limits
 
     lim = joint_limits()
     lo, hi = lim["lower"] + margin, lim["upper"] - margin

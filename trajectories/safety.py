@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from trajectories.kinematics import N_JOINTS, TCP_FRAME, joint_limits
+from tdcommon.robot import N_JOINTS, TCP_FRAME, joint_limits
 from trajectories.timing import TimedProgram
 
 HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
@@ -130,7 +130,7 @@ def _prefixed(prefix: str) -> tuple:
     """Copies of the Panda model and collision model with names prefixed, meshes as convex hulls."""
     import pinocchio as pin
 
-    from trajectories.kinematics import _panda
+    from tdcommon.robot import _panda
 
     model, cmodel = _panda()
     m = pin.Model(model)

@@ -23,7 +23,7 @@ from typing import Literal
 import numpy as np
 import ruckig
 
-from drivers.types import JointMotion
+from tdcommon.types import JointMotion
 from trajectories.program import ARMS, GripperCommand, Program
 
 N = 14  # both arms, left joints then right joints
@@ -77,7 +77,7 @@ class TimingLimits:
     @classmethod
     def panda(cls, safety_scale: float = 0.8, ramp_fraction: float = 0.25) -> TimingLimits:
         """Both Pandas' datasheet limits scaled by ``safety_scale`` in (0, 1]."""
-        from trajectories.kinematics import joint_limits
+        from tdcommon.robot import joint_limits
 
         if not 0.0 < safety_scale <= 1.0:
             raise ValueError(f"safety_scale {safety_scale} must be in (0, 1]")

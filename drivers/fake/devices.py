@@ -22,8 +22,8 @@ from drivers.clock import Clock
 from drivers.config import FakeArmConfig, FakeCameraConfig, FakeGripperConfig, SimObjectConfig
 from drivers.fake.render import DEPTH_SCALE, Mesh, SceneRenderer, sheet_mesh, tube_mesh
 from drivers.fake.sim_object import SimGroundTruth, SimObject
-from drivers.types import CameraIntrinsics, GripperState, JointMotion, JointState, RGBDFrame
-from trajectories.kinematics import PandaKinematics
+from tdcommon.robot import PandaKinematics
+from tdcommon.types import CameraIntrinsics, GripperState, JointMotion, JointState, RGBDFrame
 
 PHYSICS_RATE = 300  # Hz; physics substeps on a fixed grid of absolute times (SimObject.max_substep)
 SUBSTEPS_PER_CHUNK = 1  # TCP poses from FK at every substep: results independent of the query pattern

@@ -20,7 +20,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from drivers.config import Pose
-from drivers.types import CameraIntrinsics
+from tdcommon.types import CameraIntrinsics
 
 INVALID_ID = int(o3d.t.geometry.RaycastingScene.INVALID_ID)
 DEPTH_SCALE = 0.001  # m per depth unit

@@ -28,7 +28,7 @@ from scipy.linalg.lapack import dptsv
 from scipy.sparse.csgraph import shortest_path
 
 from drivers.config import SimObjectConfig
-from drivers.types import GroundTruth
+from tdcommon.types import GroundTruth
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 CATEGORY = {"rope": "dlo", "branched_rope": "bdlo", "cloth": "cloth"}

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.types import CameraIntrinsics, GroundTruth, RGBDFrame
+from tdcommon.types import CameraIntrinsics, GroundTruth, RGBDFrame
 
 FRAME_MAGIC = b"TDF1"
 KEYPOINTS_SCHEMA = "trackdeform.Keypoints/1"
@@ -42,27 +42,30 @@ class FrameMessage:
     run: dict[str, Any]  # what is being recorded: object, category, program, speed, run_index
 
 
-def _gt_to_json(gt: GroundTruth, max_centreline: int = 400) -> dict[str, Any]:
-    """Ground truth as JSON; the dense centreline / mid-surface is thinned to ``max_centreline`` samples."""
-    step = max(1, int(np.ceil(len(gt.centreline) / max_centreline)))
+def ground_truth_to_json(gt: GroundTruth, max_centreline: int = 400) -> dict[str, Any]:
+    """Ground truth as JSON (keypoints to 1 µm); the dense centreline / mid-surface is thinned to at most
+    ``max_centreline`` evenly picked samples, rounded to 0.1 mm, so a cloth frame's message stays small."""
+    c = np.asarray(gt.centreline)
+    idx = np.unique(np.linspace(0, len(c) - 1, min(max_centreline, len(c))).round().astype(int)) if len(c) else []
     return {
-        "keypoints": gt.keypoints.tolist(),
+        "keypoints": np.round(gt.keypoints, 6).tolist(),
         "edges": gt.edges.tolist(),
-        "centreline": np.round(gt.centreline[::step], 5).tolist(),
-        "radius": gt.radius,
         "anchors": gt.anchors.tolist(),
+        "radius": gt.radius,
         "category": gt.category,
+        "centreline": np.round(c[idx], 4).tolist(),
     }
 
 
-def _gt_from_json(d: dict[str, Any]) -> GroundTruth:
+def ground_truth_from_json(d: dict[str, Any]) -> GroundTruth:
+    """Inverse of :func:`ground_truth_to_json`; a missing field reads as empty (older episodes lack some)."""
     return GroundTruth(
-        keypoints=np.asarray(d["keypoints"], dtype=np.float64).reshape(-1, 3),
-        edges=np.asarray(d["edges"], dtype=np.int64).reshape(-1, 2),
-        centreline=np.asarray(d["centreline"], dtype=np.float64).reshape(-1, 3),
-        radius=float(d["radius"]),
-        anchors=np.asarray(d["anchors"], dtype=np.int64),
-        category=str(d["category"]),
+        keypoints=np.asarray(d.get("keypoints", []), dtype=np.float64).reshape(-1, 3),
+        edges=np.asarray(d.get("edges", []), dtype=np.int64).reshape(-1, 2),
+        centreline=np.asarray(d.get("centreline") or [], dtype=np.float64).reshape(-1, 3),
+        radius=float(d.get("radius", 0.0)),
+        anchors=np.asarray(d.get("anchors", []), dtype=np.int64),
+        category=str(d.get("category", "")),
     )
 
 
@@ -88,7 +91,7 @@ def encode_frame(frame: RGBDFrame, T_world_cam: np.ndarray, camera_id: str, run:
         "run": run or {},
     }
     if frame.ground_truth is not None:
-        header["ground_truth"] = _gt_to_json(frame.ground_truth)
+        header["ground_truth"] = ground_truth_to_json(frame.ground_truth)
     hb = json.dumps(header, separators=(",", ":")).encode()
     return b"".join([FRAME_MAGIC, struct.pack("<I", len(hb)), hb, color.tobytes(), depth.tobytes()])
 
@@ -107,8 +110,8 @@ def decode_frame(payload: bytes | memoryview) -> FrameMessage:
     color = np.frombuffer(buf[off : off + h["color_size"]], dtype=np.uint8).reshape(hgt, w, 3)
     depth = np.frombuffer(buf[off + h["color_size"] :], dtype="<u2").reshape(hgt, w)
     K = np.asarray(h["K"]).reshape(3, 3)
-    intr = CameraIntrinsics(w, hgt, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
-    gt = _gt_from_json(h["ground_truth"]) if "ground_truth" in h else None
+    intr = CameraIntrinsics.from_K(K, w, hgt)
+    gt = ground_truth_from_json(h["ground_truth"]) if "ground_truth" in h else None
     frame = RGBDFrame(
         color, depth.astype(np.uint16, copy=False), float(h["depth_scale"]), intr,
         float(h["device_stamp"]), float(h["host_stamp"]), int(h["frame_number"]), gt,

@@ -2,8 +2,8 @@
 
 The only module of ``tracking/`` that touches zenoh and the configuration: it subscribes to
 ``<prefix>/<station>/cam/<id>/frame`` and ``arms/state``, runs :class:`tracking.pipeline.LivePipeline`
-and publishes ``<prefix>/<station>/keypoints`` (JSON, see ``orchestrator.wire.encode_keypoints``).
-Run it as ``trackdeform worker CONFIG`` or ``python -m tracking.worker CONFIG``.
+and publishes ``<prefix>/<station>/keypoints`` (JSON, see ``tdcommon.wire.encode_keypoints``).
+Run it as ``trackdeform worker CONFIG`` or ``python -m orchestrator.worker CONFIG``.
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ class ArmModel:
     """Both arms' meshes and TCPs from a joint-state message (``arms/state`` JSON)."""
 
     def __init__(self, bases: dict[str, np.ndarray]) -> None:
-        from trajectories.kinematics import PandaKinematics
+        from tdcommon.robot import PandaKinematics
 
         self.kin = {n: PandaKinematics(bases[n]) for n in ("left", "right")}
 
@@ -84,7 +84,7 @@ class WorkerStats:
 
 def keypoint_message(out: PipelineOutput, frame_number: int, stamp: float, run: dict[str, Any], ms: float) -> bytes:
     """The ``keypoints`` message of one processed frame."""
-    from orchestrator.wire import encode_keypoints
+    from tdcommon.wire import encode_keypoints
 
     topo = out.topology
     edges = topo.edges if topo is not None and len(out.keypoints) else np.zeros((0, 2), np.int64)
@@ -125,7 +125,7 @@ class Worker:
         self.stats = WorkerStats()
 
     def _on_state(self, sample: Any) -> None:
-        from orchestrator.wire import decode_json
+        from tdcommon.wire import decode_json
 
         try:
             msg = decode_json(sample.payload.to_bytes())
@@ -146,7 +146,7 @@ class Worker:
 
     def step(self) -> bool:
         """Process the newest frame if there is one; False when none was waiting."""
-        from orchestrator.wire import decode_frame
+        from tdcommon.wire import decode_frame
 
         sample = self.frame_sub.try_recv()
         if sample is None:
@@ -202,7 +202,7 @@ class Worker:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m tracking.worker CONFIG [--connect ENDPOINT ...]``."""
+    """``python -m orchestrator.worker CONFIG [--connect ENDPOINT ...]``."""
     from orchestrator.config import ConfigError, load_config
 
     ap = argparse.ArgumentParser(prog="trackdeform worker", description=__doc__.splitlines()[0])

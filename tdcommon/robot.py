@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tdcommon.transforms import pose_to_input
+
 TCP_FRAME = "panda_hand_tcp"
 N_JOINTS = 7
 
@@ -123,17 +125,6 @@ class PandaKinematics:
             tris.append(link.triangles + offset)
             offset += len(link.vertices)
         return np.concatenate(verts), np.concatenate(tris)
-
-
-def pose_to_input(T: np.ndarray) -> np.ndarray:
-    """(6,) [x, y, z, rx, ry, rz]: position (m) and rotation vector (rad, axis * angle) of a pose.
-
-    OpenCV's Rodrigues (≈2 µs; scipy's Rotation ≈50 µs): called for both arms at every joint state.
-    """
-    import cv2
-
-    rvec, _ = cv2.Rodrigues(np.ascontiguousarray(T[:3, :3], dtype=np.float64))
-    return np.concatenate([T[:3, 3], rvec.ravel()])
 
 
 def arm_inputs(left: PandaKinematics, right: PandaKinematics, q_left: np.ndarray, q_right: np.ndarray) -> np.ndarray:

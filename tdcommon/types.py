@@ -32,6 +32,12 @@ class CameraIntrinsics:
         f = 0.5 * width / np.tan(np.deg2rad(hfov_deg) / 2.0)
         return cls(width, height, float(f), float(f), (width - 1) / 2.0, (height - 1) / 2.0)
 
+    @classmethod
+    def from_K(cls, K: np.ndarray, width: int, height: int) -> CameraIntrinsics:  # noqa: N802 - the conventional name
+        """Intrinsics of a ``width`` x ``height`` image from its (3, 3) camera matrix ``K``."""
+        K = np.asarray(K, dtype=np.float64)
+        return cls(int(width), int(height), float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+
     def scaled(self, width: int, height: int) -> CameraIntrinsics:
         """The same optics at another resolution."""
         sx, sy = width / self.width, height / self.height
@@ -98,6 +104,12 @@ class RGBDFrame:
     def depth_m(self) -> np.ndarray:
         """(H, W) float32 depth in metres, 0 where missing."""
         return self.depth.astype(np.float32) * np.float32(self.depth_scale)
+
+    def depth_mm(self) -> np.ndarray:
+        """(H, W) little-endian uint16 depth in millimetres, 0 where missing (the recorded and exported unit)."""
+        if abs(self.depth_scale - 0.001) < 1e-12:
+            return self.depth.astype("<u2", copy=False)
+        return np.clip(np.round(self.depth.astype(np.float64) * self.depth_scale * 1000.0), 0, 65535).astype("<u2")
 
 
 @dataclass(frozen=True)

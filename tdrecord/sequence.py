@@ -1,0 +1,110 @@
+"""The in-memory form of a recorded sequence, for offline tracking, replay and exports.
+
+A :class:`Sequence` holds per-frame arrays in the world frame (SI units) and a lazily decoded
+:class:`FrameSource` of frames; :mod:`tdrecord.episodes` and :mod:`tdrecord.paper` fill it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tdcommon.types import CameraIntrinsics, GroundTruth, RGBDFrame
+
+DEPTH_SCALE_MM = 0.001  # m per depth unit of every format read here
+
+
+class DatasetError(ValueError):
+    """A dataset file is missing a channel/key, has the wrong shape, or is unfinished; the message names the file."""
+
+
+class FrameSource:
+    """A re-iterable, lazily decoded run of frames: every ``iter()`` reads them from disk again."""
+
+    def __init__(self, factory: Callable[[int], Iterator[RGBDFrame]], length: int) -> None:
+        self._factory = factory
+        self._length = int(length)
+
+    def __iter__(self) -> Iterator[RGBDFrame]:
+        return self._factory(0)
+
+    def __len__(self) -> int:
+        return self._length
+
+    def iter_from(self, start: int) -> Iterator[RGBDFrame]:
+        """Frames ``start, start + 1, ...`` (earlier ones are skipped without being decoded where possible)."""
+        return self._factory(max(0, int(start)))
+
+
+
+@dataclass
+class Sequence:
+    """One recorded sequence for offline tracking; per-frame arrays have T rows, all in the world frame (m, rad).
+
+    frames: T RGBDFrame (colour RGB uint8, depth uint16 × depth_scale m), lazily decoded (FrameSource) or a list.
+    T_world_cam: (4, 4) camera optical frame in the world. K: (3, 3) intrinsics of the (aligned) colour image.
+    q_left / q_right: (T, 7) rad, joint states nearest in time to each frame, or None.
+    tcp_left / tcp_right: (T, 4, 4) TCP poses in the world, or None.
+    T_world_base: {"left", "right"} -> (4, 4) robot base poses in the world, or None.
+    ground_truth: T GroundTruth (or None per frame) in mock-mode episodes, else None.
+    stamps: (T,) s host stamps; frame_numbers: (T,) int64; grasped_left / grasped_right: (T,) bool or None;
+    gripper_width_left / gripper_width_right: (T,) m finger opening or None.
+    """
+
+    frames: Iterable[RGBDFrame]
+    T_world_cam: np.ndarray
+    K: np.ndarray
+    width: int = 0
+    height: int = 0
+    q_left: np.ndarray | None = None
+    q_right: np.ndarray | None = None
+    tcp_left: np.ndarray | None = None
+    tcp_right: np.ndarray | None = None
+    T_world_base: dict[str, np.ndarray] | None = None
+    ground_truth: list[GroundTruth | None] | None = None
+    metadata: dict[str, Any] = field(default_factory=dict)
+    source: Path = field(default_factory=Path)
+    stamps: np.ndarray | None = None
+    frame_numbers: np.ndarray | None = None
+    grasped_left: np.ndarray | None = None
+    grasped_right: np.ndarray | None = None
+    gripper_width_left: np.ndarray | None = None
+    gripper_width_right: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.frames)  # type: ignore[arg-type]
+
+    @property
+    def intrinsics(self) -> CameraIntrinsics:
+        """Intrinsics of the colour image (from K and the image size)."""
+        return CameraIntrinsics.from_K(self.K, self.width, self.height)
+
+
+def nearest_index(source: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """(T,) index into ``source`` (S,) stamps of the stamp nearest each ``query`` (T,) stamp (ties: earlier)."""
+    source = np.asarray(source, dtype=np.float64)
+    query = np.asarray(query, dtype=np.float64)
+    if len(source) == 0:
+        raise ValueError("nearest_index: no source stamps")
+    order = np.argsort(source, kind="stable")
+    s = source[order]
+    if len(s) == 1:
+        return np.zeros(len(query), dtype=np.int64)
+    i = np.clip(np.searchsorted(s, query), 1, len(s) - 1)
+    take_left = (query - s[i - 1]) <= (s[i] - query)
+    return order[np.where(take_left, i - 1, i)]
+
+
+def check_rigid(T: np.ndarray, where: str) -> np.ndarray:
+    """T as a (4, 4) float64 rigid transform, or a DatasetError naming ``where``."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise DatasetError(f"{where}: expected shape (4, 4), got {T.shape}")
+    R = T[:3, :3]
+    if not (np.allclose(T[3], [0, 0, 0, 1], atol=1e-6) and np.allclose(R @ R.T, np.eye(3), atol=1e-3)):
+        raise DatasetError(f"{where}: not a rigid transform (rotation not orthonormal or last row not [0 0 0 1])")
+    return T
