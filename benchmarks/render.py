@@ -33,9 +33,9 @@ SWING = np.array([0.3, 0.2, 0.0, 0.3, 0.0, -0.2, 0.5])  # rad, joint offsets of 
 
 
 def mock_objects() -> dict[str, SimObjectConfig]:
-    """The simulated objects of configs/mock.yaml by kind."""
+    """The simulated objects of configs/mock.yaml by object name."""
     plan = yaml.safe_load(MOCK.read_text())["plan"]["objects"]
-    return {o["sim"]["kind"]: SimObjectConfig(**o["sim"]) for o in plan}
+    return {o["name"]: SimObjectConfig(category=o["category"], **o["sim"]) for o in plan}
 
 
 def station(obj: SimObjectConfig, width: int, height: int) -> tuple[SimStation, FakeCamera]:

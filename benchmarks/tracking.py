@@ -48,7 +48,8 @@ from orchestrator.config import DEFAULT_CONFIG, Config, ObjectConfig, load_confi
 from orchestrator.plan import RunItem  # noqa: E402
 from orchestrator.programs import plan_motion  # noqa: E402
 from orchestrator.session import Station  # noqa: E402
-from orchestrator.worker import KIND, ArmModel, tracking_params  # noqa: E402
+from orchestrator.worker import ArmModel, tracking_params  # noqa: E402
+from tdcommon.objects import DIMENSION, default_keypoints  # noqa: E402
 from tdcommon.types import GroundTruth  # noqa: E402
 from tracking.anchors import CORNER  # noqa: E402
 from tracking.init import InitialisationError  # noqa: E402
@@ -57,7 +58,6 @@ from tracking.params import TrackingParams  # noqa: E402
 from tracking.pipeline import LivePipeline, PipelineOutput  # noqa: E402
 
 OBJECTS = ("rope", "branched_rope", "cloth")
-N_KEYPOINTS = {"rope": 20, "branched_rope": 25, "cloth": 36}
 TARGET_GT_MM = {"rope": 3.0, "branched_rope": 4.0, "cloth": 6.0}
 
 
@@ -98,7 +98,7 @@ def station_config(width: int, height: int, camera_seed: int = 0, config_path: P
 def object_config(cfg: Config, name: str, sim: dict[str, Any] | None = None) -> ObjectConfig:
     """The plan object ``name`` with the benchmark's keypoint count and ``sim`` overrides (e.g. length)."""
     obj = next(o for o in cfg.plan.objects if o.name == name)
-    update: dict[str, Any] = {"n_keypoints": N_KEYPOINTS.get(name, obj.n_keypoints)}
+    update: dict[str, Any] = {"n_keypoints": default_keypoints(obj.category)}
     if sim and obj.sim is not None:
         update["sim"] = obj.sim.model_copy(update=sim)
     return obj.model_copy(update=update)
@@ -223,7 +223,7 @@ def run_pipeline(
 
 def evaluate(seq: SimSequence, params: TrackingParams, repeats: int) -> dict[str, Any]:
     """Run the pipeline ``repeats`` times over a sequence; timings (medians over repeats) and metrics."""
-    kind = KIND.get(seq.obj.category)
+    kind = DIMENSION[seq.obj.category]
     runs = [run_pipeline(seq, params, kind) for _ in range(max(1, repeats))]
     outs = runs[0][0]
     wall = np.median(np.stack([r[1] for r in runs]), axis=0)
@@ -301,7 +301,7 @@ def init_consistency(
         cfg = station_config(width, height, camera_seed=seed)
         obj = object_config(cfg, name, sim)
         seq = simulate(cfg, obj, 0.0, speed, settle_s, frame_times=times)
-        pipe = LivePipeline(params_for(cfg, obj), seq.K, seq.T_world_cam, KIND.get(obj.category))
+        pipe = LivePipeline(params_for(cfg, obj), seq.K, seq.T_world_cam, DIMENSION[obj.category])
         V, F, tcp, closed = ArmModel(seq.bases).from_state(seq.frames[-1].state)
         d = [pipe.decimate(f.depth.astype(np.float32) * np.float32(1e-3)) for f in seq.frames]
         pipe.set_reference(d[0])

@@ -16,6 +16,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from tdcommon.meshes import box_mesh, sheet_mesh, tube_mesh  # noqa: E402
 from tracking import synthetic as S  # noqa: E402
 from tracking.metrics import anchor_error_mm, sequence_summary, surface_error_mm  # noqa: E402
 from tracking.params import TrackingParams  # noqa: E402
@@ -31,7 +32,7 @@ def _rot_z(a: float) -> np.ndarray:
 def rope_frames(n: int):
     for k in range(n):
         c = S.rope_centreline(0.12 * k)
-        yield [S.tube_mesh(c, 0.006)], c, 0.006, c[[0, -1]], True
+        yield [tube_mesh(c, 0.006)], c, 0.006, c[[0, -1]], True
 
 
 def yrope_frames(n: int):
@@ -40,18 +41,18 @@ def yrope_frames(n: int):
         R = _rot_z(0.03 * k)
         br = [b @ R.T + np.array([0.002 * k, 0.0, 0.0]) for b in base]
         anchors = np.array([br[0][0]] + [b[-1] for b in br])
-        yield [S.tube_mesh(b, 0.006) for b in br], np.concatenate(br), 0.006, anchors, False
+        yield [tube_mesh(b, 0.006) for b in br], np.concatenate(br), 0.006, anchors, False
 
 
 def cloth_frames(n: int):
     for k in range(n):
         cs = S.cloth_surface(wave=0.25 * k, height=0.12 + 0.002 * k)
-        yield [S.sheet_mesh(cs)], cs.reshape(-1, 3), 0.0, cs[[0, 0, -1, -1], [0, -1, 0, -1]], False
+        yield [sheet_mesh(cs)], cs.reshape(-1, 3), 0.0, cs[[0, 0, -1, -1], [0, -1, 0, -1]], False
 
 
 def run(name: str, frames, K, T, shape, params: TrackingParams, rng: np.random.Generator) -> None:
     H, W = shape
-    arm = S.box_mesh(np.array([0.42, 0.2, 0.2]), np.array([0.08, 0.08, 0.4]))
+    arm = box_mesh((0.42, 0.2, 0.2), (0.04, 0.04, 0.2))
     table = S.table_mesh()
     bg = background_from_depths(np.stack([S.render_depth([table, arm], K, T, shape, rng=rng) for _ in range(3)]))
     data = [(S.render_depth([table, arm, *m], K, T, shape, rng=rng), c, r, a, pl) for m, c, r, a, pl in frames]

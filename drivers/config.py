@@ -11,6 +11,9 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from tdcommon.objects import Category
+from tdcommon.robot import HOME_Q
+
 
 class StrictModel(BaseModel):
     """Base for every config model: unknown keys are errors (a typo must not pass silently)."""
@@ -49,7 +52,7 @@ JointVector = Annotated[list[float], Field(min_length=7, max_length=7)]
 class _ArmBase(StrictModel):
     base: Pose = Field(default_factory=Pose, description="robot base in the world frame (calibration)")
     home: JointVector = Field(
-        default=[0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785],
+        default=list(HOME_Q),
         description="joint configuration the arm starts from and returns to, rad",
     )
 
@@ -199,7 +202,7 @@ CameraConfig = Annotated[
 class SimObjectConfig(StrictModel):
     """The deformable object the simulator builds, holds in the fake grippers and renders."""
 
-    kind: Literal["rope", "branched_rope", "cloth"] = "rope"
+    category: Category = Field("dlo", description="what the simulator builds; in a plan, the object's category")
     length: float = Field(0.7, gt=0.05, le=3.0, description="rope / trunk length, or cloth width, m")
     width: float = Field(0.35, gt=0.05, le=2.0, description="cloth height (cloth only), m")
     branch_length: float = Field(0.25, gt=0.02, le=1.5, description="side branch length (branched rope), m")

@@ -146,7 +146,8 @@ def track_sequence(seq: Any, params: Any, kind: str | None, progress: bool = Tru
 def cmd_track(args: argparse.Namespace) -> int:
     """Track a recorded sequence offline and write ``3d_keypoints.npz`` like the paper's code."""
     from orchestrator.config import load_config
-    from orchestrator.worker import KIND, tracking_params
+    from orchestrator.worker import tracking_params
+    from tdcommon.objects import DIMENSION
     from tdrecord import DatasetError, read_sequence, write_reference_npz
     from tracking.tracker import smooth_symmetric
 
@@ -159,7 +160,7 @@ def cmd_track(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     params = tracking_params(config.tracking, category, args.keypoints or seq.metadata.get("n_keypoints"))
     try:
-        result = track_sequence(seq, params, KIND.get(category or ""), progress=not args.json)
+        result = track_sequence(seq, params, DIMENSION.get(category or ""), progress=not args.json)
     except RuntimeError as e:
         print(f"error: {args.input}: {e}", file=sys.stderr)
         return 1

@@ -14,12 +14,12 @@ import yaml
 from pydantic import Field, ValidationError, field_validator, model_validator
 
 from drivers.config import ArmConfig, CameraConfig, GripperConfig, SimObjectConfig, StrictModel
+from tdcommon.objects import Category
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 DEFAULT_CONFIG = CONFIG_DIR / "mock.yaml"
 
 Speed = Literal["slow", "medium", "fast"]
-Category = Literal["dlo", "bdlo", "cloth"]
 
 
 class ArmSlot(StrictModel):
@@ -51,18 +51,25 @@ class ObjectConfig(StrictModel):
     category: Category
     programs: list[str] = Field(min_length=1, description="library names or program file paths")
     n_keypoints: int | None = Field(
-        None, ge=3, le=400, description="keypoints to track; default 20 (dlo), 25 (bdlo), 36 (cloth 6x6)"
+        None, ge=3, le=400, description="keypoints to track; default by category: 20 (dlo), 25 (bdlo), 36 (cloth 6x6)"
     )
     sim: SimObjectConfig | None = Field(None, description="how the simulator builds it (mock mode)")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _sim_category_from_object(cls, data: Any) -> Any:  # noqa: ANN401 - raw YAML
+        """The simulator builds what the object is: ``sim.category`` defaults to the object's category."""
+        if isinstance(data, dict) and isinstance(data.get("sim"), dict) and "category" not in data["sim"]:
+            data = {**data, "sim": {**data["sim"], "category": data.get("category")}}
+        return data
 
     @model_validator(mode="after")
     def _sim_matches_category(self) -> ObjectConfig:
         if self.sim is not None:
-            expected = {"dlo": "rope", "bdlo": "branched_rope", "cloth": "cloth"}[self.category]
-            if self.sim.kind != expected:
+            if self.sim.category != self.category:
                 raise ValueError(
-                    f"sim.kind {self.sim.kind!r} does not match category {self.category!r} "
-                    f"(expected sim.kind {expected!r})"
+                    f"sim.category {self.sim.category!r} does not match category {self.category!r} "
+                    "(leave sim.category out: the simulator builds the object's category)"
                 )
         return self
 

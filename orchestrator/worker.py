@@ -19,11 +19,12 @@ from typing import Any
 
 import numpy as np
 
+from tdcommon.meshes import merge_meshes
+from tdcommon.objects import DIMENSION, default_keypoints
 from tracking.params import TrackingParams
 from tracking.pipeline import LivePipeline, PipelineOutput
 
 log = logging.getLogger("trackdeform.worker")
-KIND = {"dlo": "1d", "bdlo": "1d", "cloth": "2d"}
 
 
 def tracking_params(tracking: Any, category: str | None = None, n_keypoints: int | None = None) -> TrackingParams:
@@ -40,7 +41,7 @@ def tracking_params(tracking: Any, category: str | None = None, n_keypoints: int
         symmetric_window=tracking.final_window,
     )
     if category in ("dlo", "bdlo"):
-        p = replace(p, n_keypoints_1d=n_keypoints or (20 if category == "dlo" else 25))
+        p = replace(p, n_keypoints_1d=n_keypoints or default_keypoints(category))
     elif category == "cloth" and n_keypoints:
         side = max(2, int(round(np.sqrt(n_keypoints))))
         p = replace(p, grid_rows=side, grid_cols=side)
@@ -57,17 +58,14 @@ class ArmModel:
 
     def from_state(self, state: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """vertices (V, 3), triangles (F, 3), tcp (2, 3) m world, closed (2,) bool."""
-        verts, tris, tcp, closed, off = [], [], [], [], 0
+        meshes, tcp, closed = [], [], []
         for n in ("left", "right"):
             q = np.asarray(state[n]["q"], np.float64)
-            width = float(state[n].get("gripper_width", 0.08))
-            v, f = self.kin[n].world_meshes(q, width)
-            verts.append(v)
-            tris.append(f + off)
-            off += len(v)
+            meshes.append(self.kin[n].world_meshes(q, float(state[n].get("gripper_width", 0.08))))
             tcp.append(self.kin[n].tcp_pose(q)[:3, 3])
             closed.append(bool(state[n].get("grasped", False)))
-        return np.concatenate(verts), np.concatenate(tris), np.stack(tcp), np.asarray(closed)
+        verts, tris = merge_meshes(meshes)
+        return verts, tris, np.stack(tcp), np.asarray(closed)
 
 
 @dataclass
@@ -139,7 +137,7 @@ class Worker:
         if self.pipeline is None or key != self._run_key:
             category = run.get("category")
             params = tracking_params(self.config.tracking, category, run.get("n_keypoints"))
-            self.pipeline = LivePipeline(params, K, T, KIND.get(category))
+            self.pipeline = LivePipeline(params, K, T, DIMENSION.get(category))
             self._run_key = key
             log.info("new program run %s: tracking %s (%s)", run.get("run_index"), run.get("object"), category)
         return self.pipeline

@@ -12,10 +12,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tdcommon.meshes import box_mesh, merge_meshes, transform_mesh
 from tdcommon.transforms import pose_to_input
 
 TCP_FRAME = "panda_hand_tcp"
 N_JOINTS = 7
+# The Panda's ready pose (rad): elbow up, flange pointing down; the default start of arms and programs.
+HOME_Q = (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785)
 
 
 @dataclass(frozen=True)
@@ -38,17 +41,6 @@ def _panda() -> tuple:
     return robot.model, robot.collision_model
 
 
-def _box_mesh(half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(8, 3) vertices and (12, 3) triangles of an axis-aligned box with half extents ``half``."""
-    s = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
-    tri = np.array(
-        [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-         [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]],
-        dtype=np.int32,
-    )
-    return s * half, tri
-
-
 @functools.lru_cache(maxsize=1)
 def panda_link_meshes() -> tuple[LinkMesh, ...]:
     """The Panda's collision geometry (≈2.3k triangles) as plain arrays, loaded once."""
@@ -62,7 +54,7 @@ def panda_link_meshes() -> tuple[LinkMesh, ...]:
             v = np.asarray(m.vertices, dtype=np.float64) * np.asarray(g.meshScale)
             f = np.asarray(m.triangles, dtype=np.int32)
         else:  # finger pads are boxes
-            v, f = _box_mesh(np.asarray(g.geometry.halfSide, dtype=np.float64))
+            v, f = box_mesh((0.0, 0.0, 0.0), np.asarray(g.geometry.halfSide, dtype=np.float64))
         out.append(LinkMesh(g.name, int(g.parentJoint), g.placement.homogeneous.copy(), v, f))
     return tuple(out)
 
@@ -118,13 +110,8 @@ class PandaKinematics:
         Returns vertices (V, 3) float64 m and triangles (F, 3) int32, ≈2.3k triangles.
         """
         poses = self.joint_poses(q, finger_width)
-        verts, tris, offset = [], [], 0
-        for link in panda_link_meshes():
-            T = poses[link.joint_index] @ link.placement
-            verts.append(link.vertices @ T[:3, :3].T + T[:3, 3])
-            tris.append(link.triangles + offset)
-            offset += len(link.vertices)
-        return np.concatenate(verts), np.concatenate(tris)
+        return merge_meshes([transform_mesh((link.vertices, link.triangles), poses[link.joint_index] @ link.placement)
+                             for link in panda_link_meshes()])
 
 
 def arm_inputs(left: PandaKinematics, right: PandaKinematics, q_left: np.ndarray, q_right: np.ndarray) -> np.ndarray:
@@ -162,15 +149,9 @@ def hand_mesh(T_world_tcp: np.ndarray, finger_width: float = 0.08) -> tuple[np.n
     Returns vertices (V, 3) float64 m world and triangles (F, 3) int32.
     """
     kin = PandaKinematics()
-    q0 = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+    q0 = np.array(HOME_Q)
     poses = kin.joint_poses(q0, finger_width)
-    T_tcp_world = np.linalg.inv(kin.tcp_pose(q0))
-    verts, tris, offset = [], [], 0
-    for link in panda_link_meshes():
-        if link.joint_index not in HAND_JOINTS:
-            continue
-        T = np.asarray(T_world_tcp) @ T_tcp_world @ poses[link.joint_index] @ link.placement
-        verts.append(link.vertices @ T[:3, :3].T + T[:3, 3])
-        tris.append(link.triangles + offset)
-        offset += len(link.vertices)
-    return np.concatenate(verts), np.concatenate(tris)
+    T_world_base = np.asarray(T_world_tcp) @ np.linalg.inv(kin.tcp_pose(q0))
+    links = [link for link in panda_link_meshes() if link.joint_index in HAND_JOINTS]
+    T = [T_world_base @ poses[link.joint_index] @ link.placement for link in links]
+    return merge_meshes([transform_mesh((link.vertices, link.triangles), t) for link, t in zip(links, T, strict=True)])

@@ -47,7 +47,7 @@ plan:
     - name: rope
       category: dlo
       programs: [rope_swing]
-      sim: {kind: rope}
+      sim: {length: 0.7}
 """
 
 
@@ -75,12 +75,12 @@ def test_bad_speed_and_missing_field(tmp_path: Path) -> None:
 
 
 def test_sim_kind_must_match_category(tmp_path: Path) -> None:
-    msg = _bad(tmp_path, BASE.replace("sim: {kind: rope}", "sim: {kind: cloth}"))
+    msg = _bad(tmp_path, BASE.replace("sim: {length: 0.7}", "sim: {category: cloth}"))
     assert "plan.objects[0]" in msg and "does not match category 'dlo'" in msg
 
 
 def test_simulated_station_needs_sim_block(tmp_path: Path) -> None:
-    msg = _bad(tmp_path, BASE.replace("      sim: {kind: rope}\n", ""))
+    msg = _bad(tmp_path, BASE.replace("      sim: {length: 0.7}\n", ""))
     assert "needs plan.objects[*].sim" in msg and "['rope']" in msg
 
 

@@ -22,7 +22,7 @@ BASE_Y = {"left": 0.45, "right": -0.45}
 @pytest.fixture
 def station():
     clock = SimClock(10.0)
-    st = SimStation(SimObjectConfig(kind="rope"), clock, seed=0, settle_time=0.5)
+    st = SimStation(SimObjectConfig(category="dlo"), clock, seed=0, settle_time=0.5)
     arms = {
         n: create_arm(FakeArmConfig(base=Pose(xyz=(0, BASE_Y[n], 0)), home=HOME[n]), name=n, clock=clock, station=st)
         for n in ("left", "right")
@@ -173,8 +173,8 @@ def test_station_episode_facts_and_object_swap(station):
     clock, st, _, _, cam = station
     cam.read()
     facts = st.episode_facts()
-    assert facts["grasp_indices"] == {"left": 0, "right": 19} and facts["sim_kind"] == "rope"
-    st.set_object(SimObjectConfig(kind="cloth", spacing=0.035))
+    assert facts["grasp_indices"] == {"left": 0, "right": 19} and facts["sim_category"] == "dlo"
+    st.set_object(SimObjectConfig(category="cloth", spacing=0.035))
     f = cam.read()
     assert f.ground_truth.category == "cloth" and f.ground_truth.keypoints.shape == (36, 3)
     assert f.ground_truth.grasp == {"left": 0, "right": 5}
@@ -183,7 +183,7 @@ def test_station_episode_facts_and_object_swap(station):
 def test_physics_does_not_depend_on_query_pattern():
     def run(state_rate_reads: bool) -> np.ndarray:
         clock = SimClock(0.0)
-        st = SimStation(SimObjectConfig(kind="rope"), clock, settle_time=0.3)
+        st = SimStation(SimObjectConfig(category="dlo"), clock, settle_time=0.3)
         arms = {
             n: FakeArm(FakeArmConfig(base=Pose(xyz=(0, BASE_Y[n], 0)), home=HOME[n]), name=n, clock=clock, station=st)
             for n in ("left", "right")

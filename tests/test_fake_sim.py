@@ -7,17 +7,9 @@ import open3d as o3d
 import pytest
 
 from drivers.config import SimObjectConfig
-from drivers.fake.render import (
-    INVALID_ID,
-    SceneRenderer,
-    _tensors,
-    merge_meshes,
-    mock_camera_pose,
-    sheet_mesh,
-    static_scene,
-    tube_mesh,
-)
+from drivers.fake.render import INVALID_ID, SceneRenderer, _tensors, mock_camera_pose, static_scene
 from drivers.fake.sim_object import SimObject
+from tdcommon.meshes import merge_meshes, sheet_mesh, tube_mesh
 from tdcommon.robot import PandaKinematics
 from tdcommon.types import CameraIntrinsics
 
@@ -35,15 +27,15 @@ def tcp(p) -> np.ndarray:
 HOME = [("left", tcp([0.45, 0.25, 0.40])), ("right", tcp([0.45, -0.25, 0.40]))]
 
 
-def hung(kind: str, **kw) -> SimObject:
-    sim = SimObject(SimObjectConfig(kind=kind, **kw))
+def hung(category: str, **kw) -> SimObject:
+    sim = SimObject(SimObjectConfig(category=category, **kw))
     sim.reset(HOME, settle_time=1.0)
     return sim
 
 
-@pytest.mark.parametrize("kind", ["rope", "branched_rope"])
-def test_ropes_are_inextensible_after_settling(kind):
-    sim = hung(kind)
+@pytest.mark.parametrize("category", ["dlo", "bdlo"])
+def test_ropes_are_inextensible_after_settling(category):
+    sim = hung(category)
     r = sim.stretch_ratio()
     assert r.max() < 1.02 and r.min() > 0.98
     assert sim.x[:, 2].min() >= sim.radius - 1e-9  # never below the table
@@ -57,11 +49,9 @@ def test_cloth_stretch_is_small_after_settling():
     assert abs(r.mean() - 1.0) < 0.01
 
 
-@pytest.mark.parametrize(("kind", "n", "category", "n_anchors"), [
-    ("rope", 20, "dlo", 2), ("branched_rope", 25, "bdlo", 4), ("cloth", 36, "cloth", 4),
-])
-def test_ground_truth_layout(kind, n, category, n_anchors):
-    sim = hung(kind)
+@pytest.mark.parametrize(("category", "n", "n_anchors"), [("dlo", 20, 2), ("bdlo", 25, 4), ("cloth", 36, 4)])
+def test_ground_truth_layout(category, n, n_anchors):
+    sim = hung(category)
     gt = sim.ground_truth()
     assert gt.keypoints.shape == (n, 3) and gt.category == category
     assert len(gt.anchors) == n_anchors and gt.edges.max() < n
@@ -71,13 +61,13 @@ def test_ground_truth_layout(kind, n, category, n_anchors):
         k = gt.grasp[name]
         assert k in gt.anchors
         assert np.linalg.norm(gt.keypoints[k] - T[:3, 3]) < 1e-3
-    if kind == "rope":  # evenly spaced by arc length
+    if category == "dlo":  # evenly spaced by arc length
         seg = np.linalg.norm(np.diff(gt.keypoints, axis=0), axis=1)
         assert np.allclose(seg, 0.7 / 19, rtol=0.03)
 
 
 def _run(seed: int) -> tuple[np.ndarray, np.ndarray]:
-    sim = SimObject(SimObjectConfig(kind="rope", seed=seed))
+    sim = SimObject(SimObjectConfig(category="dlo", seed=seed))
     sim.reset(HOME, settle_time=0.3)
     for k in range(20):
         sim.step(1 / 30, {"left": tcp([0.45, 0.25 - 0.004 * k, 0.40 + 0.003 * k]), "right": HOME[1][1]}, CLOSED)
@@ -91,7 +81,7 @@ def test_determinism():
 
 
 def test_grasped_end_follows_tcp_and_release_drops_it():
-    sim = hung("rope")
+    sim = hung("dlo")
     start = sim.keypoints()[0]
     for k in range(1, 16):  # left TCP moves 6 cm in x and up 4.5 cm over 0.5 s
         T = tcp(HOME[0][1][:3, 3] + k * np.array([0.004, 0.0, 0.003]))
@@ -132,7 +122,7 @@ def test_rendered_table_depth_matches_geometry():
 
 
 def test_object_pixels_exist_and_noise_is_seeded():
-    sim = hung("rope")
+    sim = hung("dlo")
     K = CameraIntrinsics.from_fov(320, 240, 69.0)
     r = SceneRenderer(K, mock_camera_pose().matrix(), seed=2)
     mesh = tube_mesh(sim.x, sim.radius)
@@ -149,7 +139,7 @@ def test_object_pixels_exist_and_noise_is_seeded():
 
 
 def test_closing_near_the_object_grasps_the_nearest_particle():
-    sim = hung("rope")
+    sim = hung("dlo")
     sim.step(1.0, dict(HOME), {"left": False, "right": True})
     end = sim.keypoints()[0]
     T = tcp(end + [0.0, 0.0, 0.01])  # 1 cm above the fallen end
@@ -165,7 +155,7 @@ def _full_cast(r: SceneRenderer, meshes, clutter: int, seed: int) -> tuple[np.nd
     """Reference: every pixel's ray cast against static scene + ``meshes`` at once -> (z (H, W), geometry ids)."""
     K = r.intrinsics
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(*_tensors(*merge_meshes(static_scene(clutter, seed)[0])[:2]))
+    scene.add_triangles(*_tensors(*merge_meshes(static_scene(clutter, seed)[0])))
     for v, f in meshes:
         scene.add_triangles(*_tensors(v, f))
     hit = scene.cast_rays(o3d.core.Tensor(r._rays(np.arange(K.width * K.height))))

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from tdcommon.meshes import sheet_mesh, tube_mesh
 from tracking import synthetic as S
 from tracking.anchors import CORNER, JUNCTION, LEAF, detect_anchors_1d
 from tracking.classify import classify_object
@@ -36,21 +37,21 @@ def scene():
 def rope(scene):
     K, T, segment = scene
     c = S.rope_centreline(0.3)
-    return c, segment([S.tube_mesh(c, 0.006)])
+    return c, segment([tube_mesh(c, 0.006)])
 
 
 @pytest.fixture(scope="module")
 def yrope(scene):
     K, T, segment = scene
     br = S.y_rope_branches()
-    return br, segment([S.tube_mesh(b, 0.006) for b in br])
+    return br, segment([tube_mesh(b, 0.006) for b in br])
 
 
 @pytest.fixture(scope="module")
 def cloth(scene):
     K, T, segment = scene
     cs = S.cloth_surface()
-    return cs, segment([S.sheet_mesh(cs)])
+    return cs, segment([sheet_mesh(cs)])
 
 
 def test_classification(rope, yrope, cloth):

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from tdcommon.meshes import box_mesh, tube_mesh
 from tracking import synthetic as S
 from tracking.geometry import depth_to_points, project_points
 from tracking.params import TrackingParams
@@ -46,8 +47,8 @@ def test_resolution_is_not_hard_coded():
 
 def test_arm_mask_removes_arm_keeps_object_in_front(cam):
     K, T = cam
-    arm = S.box_mesh(np.array([0.0, 0.1, 0.2]), np.array([0.1, 0.1, 0.4]))
-    rope = S.tube_mesh(np.array([[-0.2, -0.05, 0.1], [0.2, -0.05, 0.1]]), 0.01)
+    arm = box_mesh((0.0, 0.1, 0.2), (0.05, 0.05, 0.2))
+    rope = tube_mesh(np.array([[-0.2, -0.05, 0.1], [0.2, -0.05, 0.1]]), 0.01)
     depth = S.render_depth([S.table_mesh(), arm, rope], K, T, (H, W))
     mask = render_arm_mask(arm[0], arm[1], K, T, (H, W), margin_px=4, depth=depth, margin_m=0.02)
     arm_only = S.render_depth([arm], K, T, (H, W)) > 0
@@ -121,7 +122,7 @@ def test_growth_stops_at_the_depth_step_behind_an_outline():
 def _lying_rope(length: float = 0.3, radius: float = 0.007) -> tuple[np.ndarray, S.Mesh]:
     """A straight rope lying on the table along x: centreline (M, 3) m at height radius, and its mesh."""
     c = np.stack([np.linspace(-length / 2, length / 2, 121), np.zeros(121), np.full(121, radius)], axis=1)
-    return c, S.tube_mesh(c, radius)
+    return c, tube_mesh(c, radius)
 
 
 def _rope_on_table(cam, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -139,7 +140,7 @@ def test_support_plane_is_the_table(cam):
 
     K, T = cam
     rng = np.random.default_rng(0)
-    box = S.box_mesh(np.array([0.1, 0.1, 0.1]), np.array([0.2, 0.2, 0.2]))
+    box = box_mesh((0.1, 0.1, 0.1), (0.1, 0.1, 0.1))
     depth = S.render_depth([S.table_mesh(), box], K, T, (H, W), rng=rng)
     plane = support_plane(depth, K, T, P)
     assert plane is not None

@@ -19,7 +19,7 @@ from benchmarks.tracking import (
     simulate,
     station_config,
 )
-from orchestrator.worker import KIND
+from tdcommon.objects import DIMENSION
 from tracking.anchors import CORNER, JUNCTION, LEAF
 
 pytestmark = pytest.mark.slow
@@ -32,7 +32,7 @@ def _run(name: str, sim: dict | None = None):
     cfg = station_config(W, H)
     obj = object_config(cfg, name, sim)
     seq = simulate(cfg, obj, SECONDS, "medium")
-    outs, _, _ = run_pipeline(seq, params_for(cfg, obj), KIND[obj.category])
+    outs, _, _ = run_pipeline(seq, params_for(cfg, obj), DIMENSION[obj.category])
     statuses = [o.status for o in outs]
     assert "init" in statuses, f"{name} never initialised: {outs[-1].note}"
     return seq, outs, statuses.index("init")

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
+from tdcommon.robot import HOME_Q
 from trajectories.program import (
     FORMAT,
     Program,
@@ -21,7 +22,7 @@ from trajectories.program import (
     save_program,
 )
 
-HOME = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785]
+HOME = list(HOME_Q)
 
 
 def _raw(n: int = 3) -> dict:

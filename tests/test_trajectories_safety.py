@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tdcommon.robot import PandaKinematics, arm_inputs, arm_inputs_batch
+from tdcommon.robot import HOME_Q, PandaKinematics, arm_inputs, arm_inputs_batch
 from trajectories.program import Program, Waypoint, library_path, load_program
 from trajectories.safety import MOCK_BASES, Workspace, check_program
 from trajectories.timing import MEDIUM, SLOW, fast, time_program
 
-HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+HOME = np.array(HOME_Q)
 
 
 def _prog(*pairs: tuple[np.ndarray, np.ndarray]) -> Program:

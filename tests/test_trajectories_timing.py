@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tdcommon.robot import joint_limits
+from tdcommon.robot import HOME_Q, joint_limits
 from trajectories.program import Program, Waypoint, library_path, load_program
 from trajectories.timing import MEDIUM, SLOW, fast, speed_profile, time_program
 
-HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+HOME = np.array(HOME_Q)
 D = np.array([0.4, 0.2, -0.1, 0.3, 0.02, 0.1, 0.4])
 
 

@@ -1,5 +1,7 @@
 """Synthetic depth scenes for tests and benchmarks: a table, tubes (ropes), sheets (cloth), boxes (arms).
 
+Meshes come from :mod:`tdcommon.meshes`; this module places and renders them.
+
 Meshes are raycast with open3d into a pinhole depth image, then depth noise sigma = c * z**2 and
 1 mm quantisation are added. World frame: z up, table top at z = 0. Everything is seeded.
 """
@@ -11,32 +13,19 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
-Mesh = tuple[np.ndarray, np.ndarray]
+from tdcommon.meshes import Mesh, box_mesh, merge_meshes, tube_mesh
+from tdcommon.transforms import look_at
+from tdcommon.types import CameraIntrinsics
 
 
 def intrinsics(width: int, height: int, hfov_deg: float = 69.0) -> np.ndarray:
     """Square-pixel camera matrix (3, 3) for a width x height image with horizontal FOV in degrees."""
-    f = 0.5 * width / np.tan(np.deg2rad(hfov_deg) / 2.0)
-    return np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
-    """T_world_cam (4, 4) of an OpenCV camera at eye (3,) m looking at target (3,) m (up default +z)."""
-    up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, float)
-    z = np.asarray(target, float) - np.asarray(eye, float)
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, y, z], axis=1)
-    T[:3, 3] = eye
-    return T
+    return CameraIntrinsics.from_fov(width, height, hfov_deg).K
 
 
 def default_camera(width: int = 640, height: int = 480) -> tuple[np.ndarray, np.ndarray]:
     """(K (3, 3), T_world_cam (4, 4)): a camera 1.06 m in front of and above the table centre."""
-    return intrinsics(width, height), look_at(np.array([0.0, -0.7, 0.8]), np.array([0.0, 0.0, 0.0]))
+    return intrinsics(width, height), look_at([0.0, -0.7, 0.8], [0.0, 0.0, 0.0])
 
 
 def curve_from_curvature(
@@ -81,63 +70,10 @@ def cloth_surface(
     return np.stack([x, y, z], axis=-1)
 
 
-def tube_mesh(centreline: np.ndarray, radius: float, sides: int = 12) -> Mesh:
-    """Closed tube around a polyline (M, 3) m -> (vertices (M*sides+2, 3), triangles (F, 3))."""
-    c = np.asarray(centreline, float)
-    t = np.gradient(c, axis=0)
-    t /= np.linalg.norm(t, axis=1, keepdims=True)
-    ref = np.where(np.abs(t[:, 2:3]) < 0.9, np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
-    n1 = np.cross(t, ref)
-    n1 /= np.linalg.norm(n1, axis=1, keepdims=True)
-    n2 = np.cross(t, n1)
-    a = np.linspace(0, 2 * np.pi, sides, endpoint=False)
-    ring = c[:, None, :] + radius * (
-        np.cos(a)[None, :, None] * n1[:, None, :] + np.sin(a)[None, :, None] * n2[:, None, :]
-    )
-    M = len(c)
-    V = np.concatenate([ring.reshape(-1, 3), c[:1], c[-1:]])
-    i = np.arange(M - 1)[:, None] * sides
-    j = np.arange(sides)[None, :]
-    a0, a1 = i + j, i + (j + 1) % sides
-    b0, b1 = a0 + sides, a1 + sides
-    F = np.concatenate([np.stack([a0, b0, a1], -1).reshape(-1, 3), np.stack([a1, b0, b1], -1).reshape(-1, 3)])
-    s0, s1 = M * sides, M * sides + 1
-    jj = np.arange(sides)
-    cap0 = np.stack([np.full(sides, s0), (jj + 1) % sides, jj], 1)
-    cap1 = np.stack([np.full(sides, s1), (M - 1) * sides + jj, (M - 1) * sides + (jj + 1) % sides], 1)
-    return V, np.concatenate([F, cap0, cap1]).astype(np.int64)
-
-
-def sheet_mesh(surface: np.ndarray) -> Mesh:
-    """Grid surface (R, C, 3) m -> (vertices (R*C, 3), triangles (2*(R-1)*(C-1), 3))."""
-    R, C, _ = surface.shape
-    idx = np.arange(R * C).reshape(R, C)
-    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
-    F = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)])
-    return surface.reshape(-1, 3).astype(float), F.astype(np.int64)
-
-
-def box_mesh(centre: np.ndarray, size: np.ndarray) -> Mesh:
-    """Axis-aligned box (a stand-in for an arm link) -> (vertices (8, 3), triangles (12, 3))."""
-    m = o3d.geometry.TriangleMesh.create_box(*np.asarray(size, float))
-    V = np.asarray(m.vertices) - np.asarray(size, float) / 2 + np.asarray(centre, float)
-    return V, np.asarray(m.triangles, np.int64)
-
-
 def table_mesh(half: float = 1.5) -> Mesh:
     """The table top z = 0 as two triangles, +-half m."""
     V = np.array([[-half, -half, 0.0], [half, -half, 0.0], [half, half, 0.0], [-half, half, 0.0]])
-    return V, np.array([[0, 1, 2], [0, 2, 3]], np.int64)
-
-
-def merge_meshes(meshes: list[Mesh]) -> Mesh:
-    """Concatenate meshes into one (vertices (V, 3), triangles (F, 3))."""
-    if not meshes:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
-    off = np.cumsum([0] + [len(v) for v, _ in meshes[:-1]])
-    return np.concatenate([v for v, _ in meshes]), np.concatenate(
-        [f + o for (_, f), o in zip(meshes, off, strict=True)]
-    )
+    return V, np.array([[0, 1, 2], [0, 2, 3]], np.int32)
 
 
 def render_depth(
@@ -195,7 +131,7 @@ def rope_scene(
 ) -> SyntheticFrame:
     """A rope on the table plus a box 'arm' standing beside it; phase (rad) moves the rope."""
     c = rope_centreline(phase, radius=radius)
-    arm = box_mesh(np.array([0.42 + arm_offset, 0.2, 0.2]), np.array([0.08, 0.08, 0.4]))
+    arm = box_mesh((0.42 + arm_offset, 0.2, 0.2), (0.04, 0.04, 0.2))
     meshes = [table_mesh(), arm] + ([tube_mesh(c, radius)] if with_object else [])
     d = render_depth(meshes, K, T_world_cam, shape, rng=rng)
     return SyntheticFrame(d, arm[0], arm[1], c, radius, c[[0, -1]])

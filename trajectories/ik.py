@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tdcommon.robot import N_JOINTS, PandaKinematics, joint_limits
+from tdcommon.robot import HOME_Q, N_JOINTS, PandaKinematics, joint_limits
 
 
 class IKError(ValueError):
@@ -106,7 +106,7 @@ def build_library_program(name: str, category: str, description: str, poses: lis
     """A Program whose waypoints reach ``poses`` (left xyz, right xyz, left yaw, right yaw) by IK."""
     from trajectories.program import Program, Waypoint
 
-    home = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+    home = np.array(HOME_Q)
     kins = {a: PandaKinematics(bases[a]) for a in ("left", "right")}
     prev = {"left": home, "right": home}
     wps = []

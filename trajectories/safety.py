@@ -24,10 +24,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tdcommon.robot import N_JOINTS, TCP_FRAME, joint_limits
+from tdcommon.robot import HOME_Q, N_JOINTS, TCP_FRAME, joint_limits
 from trajectories.timing import TimedProgram
 
-HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+HOME = np.array(HOME_Q)
 ARM_NAMES = ("left", "right")
 MOCK_BASES: dict[str, np.ndarray] = {
     "left": np.array([[1, 0, 0, 0], [0, 1, 0, 0.45], [0, 0, 1, 0], [0, 0, 0, 1]], dtype=np.float64),

@@ -20,8 +20,9 @@ import numpy as np
 from drivers.base import DeviceError
 from drivers.clock import Clock
 from drivers.config import FakeArmConfig, FakeCameraConfig, FakeGripperConfig, SimObjectConfig
-from drivers.fake.render import DEPTH_SCALE, Mesh, SceneRenderer, sheet_mesh, tube_mesh
+from drivers.fake.render import DEPTH_SCALE, SceneRenderer
 from drivers.fake.sim_object import SimGroundTruth, SimObject
+from tdcommon.meshes import Mesh, sheet_mesh, tube_mesh
 from tdcommon.robot import PandaKinematics
 from tdcommon.types import CameraIntrinsics, GripperState, JointMotion, JointState, RGBDFrame
 
@@ -168,7 +169,7 @@ class SimStation:
         with self._lock:
             sim = self.sim
             facts = {
-                "sim_kind": sim.kind,
+                "sim_category": sim.category,
                 "grasp_indices": self.grasp_indices(),
                 "contact": self._contact,
                 "sim_max_stretch": float(sim.stretch_ratio().max()),

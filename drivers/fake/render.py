@@ -20,6 +20,8 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from drivers.config import Pose
+from tdcommon.meshes import Mesh, box_mesh, merge_meshes, mesh_sources
+from tdcommon.transforms import look_at
 from tdcommon.types import CameraIntrinsics
 
 INVALID_ID = int(o3d.t.geometry.RaycastingScene.INVALID_ID)
@@ -34,7 +36,6 @@ WORKSPACE = (-0.3, 1.0, -0.85, 0.85, -0.1, 1.3)
 MOCK_CAMERA_EYE = (1.35, 0.0, 0.75)
 MOCK_CAMERA_TARGET = (0.45, 0.0, 0.2)
 
-Mesh = tuple[np.ndarray, np.ndarray]  # vertices (V, 3) float64 m, triangles (F, 3) int32
 # Static pre-renders (SceneRenderer._prerender), shared by renderers with the same camera and scene.
 _PRERENDER_FIELDS = (
     "_z_static", "_zp_static", "_inv_static", "_cos_static", "_pool_shift", "_colour_pool", "_depth_pool", "_p_fly",
@@ -45,96 +46,9 @@ _PRERENDERS: dict[tuple, dict[str, object]] = {}
 _PRERENDER_LOCK = threading.Lock()
 
 
-def look_at(eye: Sequence[float], target: Sequence[float], up: Sequence[float] = (0.0, 0.0, 1.0)) -> Pose:
-    """Camera optical frame (x right, y down, z forward) at ``eye`` looking at ``target``, world frame."""
-    eye_a, target_a, up_a = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
-    z = target_a - eye_a
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up_a)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, y, z], axis=1)
-    T[:3, 3] = eye_a
-    return Pose.from_matrix(T)
-
-
 def mock_camera_pose() -> Pose:
     """The mock camera's pose: in front of the table at (1.35, 0, 0.75) m looking at (0.45, 0, 0.2) m."""
-    return look_at(MOCK_CAMERA_EYE, MOCK_CAMERA_TARGET)
-
-
-# ---------------------------------------------------------------- meshes
-def box_mesh(centre: Sequence[float], half: Sequence[float], yaw: float = 0.0) -> Mesh:
-    """A box with half extents ``half`` (m) rotated by ``yaw`` (rad) about z, centred at ``centre``."""
-    s = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
-    tri = np.array(
-        [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-         [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]],
-        dtype=np.int32,
-    )
-    c, s_ = np.cos(yaw), np.sin(yaw)
-    R = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
-    return (s * np.asarray(half)) @ R.T + np.asarray(centre, dtype=np.float64), tri
-
-
-def merge_meshes(meshes: Sequence[Mesh]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One triangle soup from several meshes: vertices (V, 3), triangles (F, 3), source index (F,) per triangle."""
-    verts, tris, src, offset = [], [], [], 0
-    for k, (v, f) in enumerate(meshes):
-        verts.append(v)
-        tris.append(np.asarray(f, dtype=np.int32) + offset)
-        src.append(np.full(len(f), k, dtype=np.int32))
-        offset += len(v)
-    return np.concatenate(verts), np.concatenate(tris), np.concatenate(src)
-
-
-def tube_mesh(points: np.ndarray, radius: float, sides: int = 10) -> Mesh:
-    """A closed tube of ``radius`` m around the polyline ``points`` (n, 3), with end caps."""
-    n = len(points)
-    t = np.gradient(points, axis=0)
-    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
-    ref = np.where(np.abs(t[:, 2:3]) > 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.0]]))
-    a = np.cross(t, ref)
-    a /= np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
-    b = np.cross(t, a)
-    ang = np.linspace(0.0, 2 * np.pi, sides, endpoint=False)
-    ring = radius * (np.cos(ang)[None, :, None] * a[:, None, :] + np.sin(ang)[None, :, None] * b[:, None, :])
-    verts = (points[:, None, :] + ring).reshape(-1, 3)
-    k, s = np.meshgrid(np.arange(n - 1), np.arange(sides), indexing="ij")
-    v00, v01 = k * sides + s, k * sides + (s + 1) % sides
-    v10, v11 = v00 + sides, v01 + sides
-    side = np.concatenate([np.stack([v00, v10, v11], -1).reshape(-1, 3), np.stack([v00, v11, v01], -1).reshape(-1, 3)])
-    c0, c1 = n * sides, n * sides + 1
-    s1 = np.arange(sides)
-    caps = np.concatenate(
-        [
-            np.stack([np.full(sides, c0), (s1 + 1) % sides, s1], -1),
-            np.stack([np.full(sides, c1), (n - 1) * sides + s1, (n - 1) * sides + (s1 + 1) % sides], -1),
-        ]
-    )
-    verts = np.concatenate([verts, points[[0, -1]]])
-    return verts, np.concatenate([side, caps]).astype(np.int32)
-
-
-def sheet_mesh(grid: np.ndarray, half_thickness: float) -> Mesh:
-    """A closed sheet of thickness 2 * ``half_thickness`` m around the mid-surface ``grid`` (rows, cols, 3)."""
-    rows, cols, _ = grid.shape
-    du = np.gradient(grid, axis=1)
-    dv = np.gradient(grid, axis=0)
-    nrm = np.cross(du, dv)
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=2, keepdims=True), 1e-12)
-    top = (grid + half_thickness * nrm).reshape(-1, 3)
-    bottom = (grid - half_thickness * nrm).reshape(-1, 3)
-    idx = np.arange(rows * cols).reshape(rows, cols)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
-    face_top = np.concatenate([np.stack([a, c, b], -1), np.stack([b, c, d], -1)])
-    m = rows * cols
-    face_bottom = face_top[:, ::-1] + m
-    loop = np.concatenate([idx[0, :], idx[1:, -1], idx[-1, -2::-1], idx[-2:0:-1, 0]])
-    nxt = np.roll(loop, -1)
-    rim = np.concatenate([np.stack([loop, nxt, nxt + m], -1), np.stack([loop, nxt + m, loop + m], -1)])
-    return np.concatenate([top, bottom]), np.concatenate([face_top, face_bottom, rim]).astype(np.int32)
+    return Pose.from_matrix(look_at(MOCK_CAMERA_EYE, MOCK_CAMERA_TARGET))
 
 
 def static_scene(clutter: int, seed: int) -> tuple[list[Mesh], list[tuple[int, int, int]]]:
@@ -324,7 +238,8 @@ class SceneRenderer:
         seed = self.seed
         # ---- static pre-render: exact depth, view angle, shaded colour.
         meshes, colours = static_scene(clutter, seed)
-        v, f, src = merge_meshes(meshes)
+        v, f = merge_meshes(meshes)
+        src = mesh_sources(meshes)
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(*_tensors(v, f))
         hit = scene.cast_rays(o3d.core.Tensor(self._rays(np.arange(n_pix))), nthreads=self.nthreads)
@@ -590,7 +505,8 @@ class SceneRenderer:
         depth = self._static_depth[k].copy()
         mask = np.zeros((H, W), dtype=bool) if with_mask else None
         meshes = list(arms) + ([obj] if obj is not None else [])
-        v, f, src = merge_meshes(meshes) if meshes else (np.zeros((0, 3)), np.zeros((0, 3), np.int32), None)
+        v, f = merge_meshes(meshes)
+        src = mesh_sources(meshes)
         pidx = np.zeros(0, np.int64)
         if len(f):
             # ---- where the dynamic geometry is nearer than the static scene: pixels, 1/z, triangle.

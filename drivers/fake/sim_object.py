@@ -28,19 +28,18 @@ from scipy.linalg.lapack import dptsv
 from scipy.sparse.csgraph import shortest_path
 
 from drivers.config import SimObjectConfig
+from tdcommon.objects import default_keypoints
 from tdcommon.types import GroundTruth
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
-CATEGORY = {"rope": "dlo", "branched_rope": "bdlo", "cloth": "cloth"}
 SOFT_RELAXATION = 1.5  # SOR factor of the Jacobi step over the soft constraints (averaged per particle)
 REFERENCE_SUBSTEP = 1.0 / 300.0  # s; the substep ``SimObject.friction`` is given for
 _SETTLED_CACHE_SIZE = 8  # settled start states kept (SimObject.reset)
 _SETTLED: dict[tuple, dict[str, object]] = {}
 _SETTLED_LOCK = threading.Lock()
-DEFAULT_KEYPOINTS = {"rope": 20, "branched_rope": 25, "cloth": 36}
 # Stretch iterations per substep: a single chain converges in very few (exact tridiagonal
 # projection); the branched rope's trunk and branch couple only through Gauss-Seidel sweeps.
-DEFAULT_ITERATIONS = {"rope": 3, "branched_rope": 4, "cloth": 3}
+DEFAULT_ITERATIONS = {"dlo": 3, "bdlo": 4, "cloth": 3}
 
 
 @dataclass(frozen=True)
@@ -125,7 +124,7 @@ def _cloth_keypoint_grid(n: int, aspect: float) -> tuple[int, int]:
 def _build_chain_object(cfg: SimObjectConfig, n_keypoints: int) -> _Topology:
     """Topology of a rope (one chain) or a branched rope (trunk + side branch from its middle)."""
     n_trunk = max(3, int(round(cfg.length / cfg.spacing)) + 1)
-    if cfg.kind == "branched_rope" and n_trunk % 2 == 0:
+    if cfg.category == "bdlo" and n_trunk % 2 == 0:
         n_trunk += 1  # the junction sits exactly in the middle of the trunk
     trunk = np.arange(n_trunk)
     trunk_s = np.linspace(0.0, cfg.length, n_trunk)
@@ -135,7 +134,7 @@ def _build_chain_object(cfg: SimObjectConfig, n_keypoints: int) -> _Topology:
     stretch_rest = [np.full(n_trunk - 1, trunk_s[1])]
     soft = [_chain_edges(trunk, 2)]
     soft_rest = [np.full(max(n_trunk - 2, 0), 2 * trunk_s[1])]
-    if cfg.kind == "branched_rope":
+    if cfg.category == "bdlo":
         junction = (n_trunk - 1) // 2
         n_branch = max(2, int(round(cfg.branch_length / cfg.spacing)))
         branch = np.concatenate([[junction], n_trunk + np.arange(n_branch)])
@@ -150,7 +149,7 @@ def _build_chain_object(cfg: SimObjectConfig, n_keypoints: int) -> _Topology:
         soft_rest += [np.full(max(n_branch - 1, 0), 2 * branch_s[1])]
     n_particles = len(layout)
 
-    if cfg.kind == "rope":
+    if cfg.category == "dlo":
         kp_map = _chain_interp(trunk, trunk_s, np.linspace(0.0, cfg.length, n_keypoints), n_particles)
         kp_edges = _chain_edges(np.arange(n_keypoints), 1)
         anchors = np.array([0, n_keypoints - 1])
@@ -310,13 +309,12 @@ class SimObject:
         damping: float = 0.8,
     ) -> None:
         self.config = config
-        self.kind = config.kind
-        self.category = CATEGORY[config.kind]
+        self.category = config.category
         self.radius = float(config.radius)
-        self.iterations = DEFAULT_ITERATIONS[config.kind] if iterations is None else int(iterations)
+        self.iterations = DEFAULT_ITERATIONS[config.category] if iterations is None else int(iterations)
         self.damping = float(damping)  # 1/s, velocity decay rate
-        n_kp = DEFAULT_KEYPOINTS[config.kind] if n_keypoints is None else int(n_keypoints)
-        self.topology = (_build_cloth if config.kind == "cloth" else _build_chain_object)(config, n_kp)
+        n_kp = default_keypoints(config.category) if n_keypoints is None else int(n_keypoints)
+        self.topology = (_build_cloth if config.category == "cloth" else _build_chain_object)(config, n_kp)
         topo = self.topology
         self.n_particles = len(topo.rest_layout)
         self._rng = np.random.default_rng(config.seed)
@@ -490,14 +488,14 @@ class SimObject:
         up = np.array([0.0, 0.0, 1.0])
         if len(pts) >= 2 and np.linalg.norm(pts[1] - pts[0]) < 0.97 * span:
             curve, cs = _sag_curve(pts[0], pts[1], span)
-            if self.kind == "cloth":
+            if self.category == "cloth":
                 rows, cols = topo.grid_shape  # type: ignore[misc]
                 top = _resample(curve, cs, topo.rest_layout[:cols, 0])
                 x = np.repeat(top[None], rows, 0).reshape(-1, 3) + topo.rest_layout[:, 1:2] * up
             else:
                 trunk = topo.chains[0]
                 x[trunk] = _resample(curve, cs, topo.rest_layout[trunk, 0])
-                if self.kind == "branched_rope":
+                if self.category == "bdlo":
                     branch = topo.chains[1]
                     x[branch[1:]] = x[branch[0]] - topo.rest_layout[branch[1:], 1:2] * up
             holders = [(tcp_poses[0][0], ga), (tcp_poses[1][0], gb)]
@@ -506,12 +504,12 @@ class SimObject:
             rel = topo.rest_layout - topo.rest_layout[ga]
             drop = np.linalg.norm(rel, axis=1)
             x = pts[0] + np.stack([np.zeros_like(drop), np.zeros_like(drop), -drop], axis=1)
-            if self.kind == "cloth":
+            if self.category == "cloth":
                 x[:, 1] += rel[:, 0]  # keep the cloth a sheet, not a line
             holders = [(tcp_poses[0][0], ga)]
         else:
             x = topo.rest_layout - topo.rest_layout.mean(axis=0)
-            x = x[:, [1, 0, 2]] if self.kind != "cloth" else x  # lie across the workspace along y
+            x = x[:, [1, 0, 2]] if self.category != "cloth" else x  # lie across the workspace along y
             x = x + np.array([0.45, 0.0, 0.0])
             holders = []
         # Below the table: slide the part along +x instead (it will settle there).
