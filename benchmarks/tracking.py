@@ -53,7 +53,7 @@ from tdcommon.objects import DIMENSION, default_keypoints  # noqa: E402
 from tdcommon.types import GroundTruth  # noqa: E402
 from tracking.anchors import CORNER  # noqa: E402
 from tracking.init import InitialisationError  # noqa: E402
-from tracking.metrics import distance_to_polyline, sequence_summary  # noqa: E402
+from tracking.metrics import sequence_summary, surface_error_mm  # noqa: E402
 from tracking.params import TrackingParams  # noqa: E402
 from tracking.pipeline import LivePipeline, PipelineOutput  # noqa: E402
 
@@ -156,23 +156,9 @@ def simulate(
         station.close()
 
 
-def _chains(samples: np.ndarray, gap_m: float = 0.006) -> list[np.ndarray]:
-    """Split concatenated centreline samples (M, 3) m into chains at jumps larger than ``gap_m``."""
-    jumps = np.nonzero(np.linalg.norm(np.diff(samples, axis=0), axis=1) > gap_m)[0] + 1
-    return [c for c in np.split(samples, jumps) if len(c) >= 2]
-
-
 def gt_error_mm(X: np.ndarray, gt: GroundTruth) -> float:
-    """Per-frame GT RMSE (mm) of keypoints X (N, 3) m: distance to the true centreline chains (1D,
-    as polylines) or mid-surface samples (2D) minus the radius / half thickness, floored at 0."""
-    if gt.category == "cloth":
-        from scipy.spatial import cKDTree
-
-        d = cKDTree(gt.centreline).query(X)[0]
-    else:
-        d = np.min(np.stack([distance_to_polyline(X, c) for c in _chains(gt.centreline)]), axis=0)
-    e = np.maximum(0.0, d - gt.radius)
-    return float(1e3 * np.sqrt(np.mean(e**2)))
+    """Per-frame GT RMSE (mm) of keypoints X (N, 3) m, as ``trackdeform track`` scores it."""
+    return surface_error_mm(X, gt.centreline, gt.radius, polyline=gt.category != "cloth")
 
 
 def anchor_gt_error_mm(out: PipelineOutput, gt: GroundTruth) -> float:

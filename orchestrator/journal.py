@@ -64,8 +64,7 @@ def plan_description(config: Config) -> dict[str, Any]:
     ``repeats`` is left out on purpose: run items are keyed by (object, program, speed, repeat),
     which stay valid when the repeat count changes, so raising it collects more of the same plan.
     """
-    from orchestrator.programs import resolve_program
-    from trajectories.program import ProgramError
+    from trajectories.program import ProgramError, resolve_program
 
     programs: dict[str, str] = {}
     for obj in config.plan.objects:

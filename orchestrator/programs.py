@@ -3,17 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, TextIO
 
 import numpy as np
 
 from orchestrator.config import Config
 from tdcommon.types import JointMotion
-from trajectories.program import Program, ProgramError, load_program
+from trajectories.program import Program, ProgramError, load_program, resolve_program
 from trajectories.timing import TimedProgram, speed_profile, time_program
 
-LIBRARY = Path(__file__).resolve().parent.parent / "trajectories" / "library"
 EXECUTION_RATE = 1000.0  # Hz: the samples every driver receives (UR resamples to its servo rate)
 
 
@@ -55,19 +53,6 @@ class PlannedMotion:
              "requested": round(s.requested, 6), "actual": round(s.actual, 6)}
             for s in self.timed.segments
         ]
-
-
-def resolve_program(ref: str, base: Path | None = None) -> Path:
-    """A program file path from a library name (``rope_swing``) or a path (relative to ``base``)."""
-    p = Path(ref)
-    candidates = [p] if p.is_absolute() else [(base or Path.cwd()) / p, p]
-    if p.suffix == "":
-        candidates += [LIBRARY / f"{ref}.yaml", LIBRARY / f"{ref}.json"]
-    for c in candidates:
-        if c.is_file():
-            return c
-    known = sorted(x.stem for x in LIBRARY.glob("*.yaml"))
-    raise ProgramError(f"program {ref!r} not found (not a file; library programs: {known})")
 
 
 def _safety_problems(timed: TimedProgram, bases: dict[str, np.ndarray]) -> list[str]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from tracking.metrics import (
     anchor_error_mm,
@@ -52,3 +53,19 @@ def test_ground_truth_errors():
     true = np.array([[0.0, 0, 0], [1.0, 0, 0]])
     pred = np.array([[1.0, 0.004, 0], [0.0, 0, 0.002]])  # swapped order: Hungarian matches
     assert np.isclose(anchor_error_mm(pred, true), 3.0)
+
+
+
+def test_branched_gt_is_measured_to_each_chain_not_the_join():
+    """A branched rope's samples are its trunk then its branch: a keypoint on the false segment from the
+    trunk's end to the branch's tip is 75 mm off the object, not on it."""
+    from tracking.metrics import split_chains
+
+    trunk = np.stack([np.linspace(0.0, 0.3, 151), np.zeros(151), np.zeros(151)], axis=1)
+    branch = np.stack([np.full(101, 0.15), np.linspace(0.2, 0.0, 101), np.zeros(101)], axis=1)  # tip to junction
+    samples = np.concatenate([trunk, branch])
+    assert [len(c) for c in split_chains(samples)] == [151, 101]
+    on_false_segment = np.array([[0.225, 0.1, 0.0]])
+    assert surface_error_mm(on_false_segment, samples, 0.0, polyline=True) == pytest.approx(75.0, abs=1e-6)
+    on_branch = np.array([[0.15, 0.1, 0.004]])
+    assert surface_error_mm(on_branch, samples, 0.003, polyline=True) == pytest.approx(1.0, abs=1e-6)

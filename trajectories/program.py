@@ -208,23 +208,30 @@ LIBRARY_DIR = Path(__file__).resolve().parent / "library"
 
 
 def list_library() -> list[str]:
-    """Names of the shipped programs (``trajectories/library/*.yaml``), sorted."""
-    return sorted(p.stem for p in LIBRARY_DIR.glob("*.yaml"))
+    """Names of the shipped programs (``trajectories/library/*.yaml`` and ``*.json``), sorted."""
+    return sorted({p.stem for p in LIBRARY_DIR.glob("*.yaml")} | {p.stem for p in LIBRARY_DIR.glob("*.json")})
 
 
 def library_path(name: str) -> Path:
-    """Path of the shipped program ``name`` (e.g. ``rope_swing``)."""
-    p = LIBRARY_DIR / f"{name}.yaml"
-    if not p.is_file():
-        raise ProgramError(f"no library program {name!r}; available: {', '.join(list_library()) or 'none'}")
-    return p
+    """Path of the shipped program ``name`` (e.g. ``rope_swing``): its ``.yaml``, else its ``.json``."""
+    for suffix in (".yaml", ".json"):
+        p = LIBRARY_DIR / f"{name}{suffix}"
+        if p.is_file():
+            return p
+    raise ProgramError(f"no library program {name!r}; available: {', '.join(list_library()) or 'none'}")
 
 
-def resolve_program(ref: str | Path) -> Path:
-    """A program file path, or the library program named ``ref`` when no such file exists."""
+def resolve_program(ref: str | Path, base: Path | None = None) -> Path:
+    """The program file ``ref`` names: a file (absolute, else relative to ``base`` and then to the working
+    folder) or, when no such file exists and ``ref`` is a bare name, the library program of that name.
+
+    The one resolver of the project: the CLI, the session and the journal's plan fingerprint all use it.
+    """
     p = Path(ref)
-    if p.is_file():
-        return p
+    candidates = [p] if p.is_absolute() else ([base / p] if base is not None else []) + [p]
+    for c in candidates:
+        if c.is_file():
+            return c
     if p.suffix == "" and p.parent == Path("."):
         return library_path(str(ref))
     raise ProgramError(f"{ref}: no such file (and not a library name: {', '.join(list_library())})")
