@@ -47,7 +47,7 @@ from drivers.clock import SimClock  # noqa: E402
 from orchestrator.config import DEFAULT_CONFIG, Config, ObjectConfig, load_config  # noqa: E402
 from orchestrator.plan import RunItem  # noqa: E402
 from orchestrator.programs import plan_motion  # noqa: E402
-from orchestrator.session import Station  # noqa: E402
+from orchestrator.station import Station  # noqa: E402
 from orchestrator.worker import ArmModel, tracking_params  # noqa: E402
 from tdcommon.objects import DIMENSION, default_keypoints  # noqa: E402
 from tdcommon.types import GroundTruth  # noqa: E402

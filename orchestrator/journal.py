@@ -248,6 +248,33 @@ class Journal:
         self._write(record)
         self.records.append(record)
 
+    def session_started(self, index: int, started: str, software: str, runs_planned: int, loop: bool) -> None:
+        """Record that a session (the ``index``-th on this folder) starts on the plan."""
+        self.append({"type": "session", "index": index, "started": started, "software": software,
+                     "runs_planned": runs_planned, "loop": loop})
+
+    def run_started(self, key: RunKey, *, plan_pass: int, attempt: int, session: int, first_episode: int) -> None:
+        """Record that a run starts; a ``start`` without its ``run`` record is a run cut short."""
+        self.append({"type": "start", "pass": plan_pass, **key_fields(key), "attempt": attempt,
+                     "session": session, "first_episode": first_episode, "started": now_iso()})
+
+    @staticmethod
+    def run_record(key: RunKey, *, plan_pass: int, outcome: str, reason: str | None, attempt: int, session: int,
+                   episodes: list[Path], wall_seconds: float) -> dict[str, Any]:
+        """The ``run`` record of a finished run (written by :meth:`run_finished`, maybe later: a ``done``
+        run is journaled once its episode files are final)."""
+        if outcome not in OUTCOMES:
+            raise ValueError(f"run outcome {outcome!r} is not one of {OUTCOMES}")
+        return {"type": "run", "pass": plan_pass, **key_fields(key), "outcome": outcome, "reason": reason,
+                "attempt": attempt, "session": session, "episodes": [p.name for p in episodes],
+                "wall_seconds": round(wall_seconds, 3), "finished": now_iso()}
+
+    def run_finished(self, record: dict[str, Any], *, failed_reason: str | None = None) -> None:
+        """Write a :meth:`run_record`; with ``failed_reason``, as a failed run with that reason instead."""
+        if failed_reason is not None:
+            record = {**record, "outcome": "failed", "reason": failed_reason}
+        self.append(record)
+
     def _write(self, record: dict[str, Any]) -> None:
         if self._fd is None:
             raise JournalError(f"{self.path}: the journal is closed")

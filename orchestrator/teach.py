@@ -255,7 +255,7 @@ def teach_station(
 ) -> int:
     """Connect the config's arms and grippers (a simulated station in mock mode), teach, disconnect."""
     from drivers.clock import RealClock, SimClock
-    from orchestrator.session import Station
+    from orchestrator.station import Station
 
     objects = config.plan.objects
     obj = next((o for o in objects if o.category == category), objects[0])

@@ -1,0 +1,319 @@
+"""One program run's capture: frames cut into whole episodes, gripper events on time, faults resumed.
+
+:class:`EpisodeStream` owns a session's episode files (numbering, the disk-space guard, open / close)
+and sends every frame and joint state to the recorder and the bus. :class:`RunCapture` records one run
+item on a connected station through it: one loop driven by the camera, joint states sampled between
+frames (a thread in real time, inline in simulated time), and after a recoverable arm fault a retry of
+the faulted segment from where the arms are.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import shutil
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers.base import DeviceError
+from drivers.clock import Clock
+from orchestrator import __version__
+from orchestrator.bus import Bus
+from orchestrator.config import Config
+from orchestrator.plan import RunItem
+from orchestrator.programs import PlannedMotion, ProgramRejected, plan_motion
+from orchestrator.progress import Progress
+from orchestrator.recorder import Recorder
+from orchestrator.station import ARMS, StatePoller, Station
+from orchestrator.summary import SessionSummary
+from tdcommon.types import RGBDFrame
+from tdcommon.wire import encode_frame, encode_json
+
+log = logging.getLogger(__name__)
+
+
+class EpisodeStream:
+    """A session's episode files and live streams: every frame and joint state goes to the recorder and,
+    when there is one, the bus; episodes are numbered on from those already in the folder."""
+
+    def __init__(self, out_dir: Path, recorder: Recorder, bus: Bus | None, camera_id: str, summary: SessionSummary,
+                 *, min_free_gb: float, stop_event: threading.Event, before_open: Callable[[], None]) -> None:
+        self.out_dir = out_dir
+        self.recorder = recorder
+        self.bus = bus
+        self.summary = summary
+        self.min_free_gb = min_free_gb
+        self.stop_event = stop_event
+        self.before_open = before_open  # called before each new file (the journal catches up on done runs)
+        self.next_index = next_episode_index(out_dir)
+        self.episode_open = False
+        self.last_frame_number: int | None = None
+        self.run_info: dict[str, Any] = {}  # what is being recorded, sent with every frame on the bus
+        self._frame_key = bus.key("cam", camera_id, "frame") if bus is not None else ""
+        self._state_key = bus.key("arms", "state") if bus is not None else ""
+
+    def open_episode(self, meta: dict[str, Any]) -> Path | None:
+        """Open the next episode file; None (and a stop) when the disk is below ``min_free_gb``."""
+        free_gb = shutil.disk_usage(self.out_dir).free / 2**30
+        if free_gb < self.min_free_gb:
+            self.stop_event.set()
+            self.summary.stopped_early = (
+                f"only {free_gb:.1f} GiB free in {self.out_dir} (output.min_free_gb = {self.min_free_gb})"
+            )
+            return None
+        self.before_open()
+        path = self.out_dir / f"episode_{self.next_index:06d}.mcap"
+        self.recorder.open_episode(path, {**meta, "episode_index": self.next_index})
+        self.next_index += 1
+        self.episode_open = True
+        return path
+
+    def close_episode(self, station: Station, complete: bool, fault: bool = False) -> None:
+        """Close the open episode (if any) with its ``complete`` / ``fault`` flags and the simulator's facts."""
+        if not self.episode_open:
+            return
+        meta: dict[str, Any] = {"complete": complete, "fault": fault}  # every episode has both keys
+        if station.sim is not None:
+            meta.update(station.sim.episode_facts())
+        self.recorder.close_episode(meta)
+        self.episode_open = False
+
+    def record_frame(self, frame: RGBDFrame, station: Station) -> None:
+        """Count (and count drops by frame number), record and publish one frame."""
+        if self.last_frame_number is not None and frame.frame_number > self.last_frame_number + 1:
+            self.summary.frames_dropped += frame.frame_number - self.last_frame_number - 1
+        self.last_frame_number = frame.frame_number
+        self.summary.frames_captured += 1
+        self.recorder.frame(frame, station.T_world_cam)
+        if self.bus is not None:
+            self.bus.put(self._frame_key, encode_frame(frame, station.T_world_cam, station.camera.id, self.run_info))
+
+    def sample_states(self, station: Station) -> None:
+        """Sample both arms once; record and publish the ``arms/state`` message."""
+        msg, tcps = station.sample_state()
+        self.summary.state_samples += 1
+        self.recorder.arm_state(msg, tcps)
+        if self.bus is not None:
+            self.bus.put(self._state_key, encode_json(msg))
+
+
+def next_episode_index(out_dir: Path) -> int:
+    """Continue numbering after the episodes already in the folder or its quarantine (a resumed session)."""
+    idx = []
+    for p in [*out_dir.glob("episode_*.mcap*"), *out_dir.glob("quarantine/episode_*.mcap*")]:
+        number = p.name.split("_")[1].split(".")[0]
+        if number.isdigit():
+            idx.append(int(number))
+    return max(idx) + 1 if idx else 0
+
+
+@dataclass
+class Resume:
+    """Where a program run continues after a recovered fault: a waypoint and the next chunk index."""
+
+    waypoint: int = 0
+    chunk: int = 0
+
+
+@dataclass(frozen=True)
+class RunContext:
+    """What one run is recorded within: the session's clock, config, streams and stop conditions.
+
+    ``run_meta`` goes into every episode's metadata (attempt, plan_pass, session_started).
+    """
+
+    config: Config
+    clock: Clock
+    stream: EpisodeStream
+    summary: SessionSummary
+    progress: Progress
+    stop_event: threading.Event
+    should_stop: Callable[[], bool]
+    max_seconds: float | None
+    state_rate: float
+    run_meta: dict[str, Any]
+
+
+class RunCapture:
+    """Records one run item on a connected station as whole episodes: ``RunCapture(ctx, item, station).run()``."""
+
+    def __init__(self, ctx: RunContext, item: RunItem, station: Station) -> None:
+        self.ctx = ctx
+        self.item = item
+        self.station = station
+        self.episodes: list[Path] = []  # the files this run opened, in order
+
+    def run(self, retries: int = 2) -> tuple[str, str | None]:
+        """Record the run; after a recoverable fault, recover and retry the faulted segment at slow speed.
+
+        Returns ("done" | "stopped" | "failed", the failure message or None).
+        """
+        ctx, item, station = self.ctx, self.item, self.station
+        resume = Resume()
+        attempt = 0
+        while True:
+            try:
+                complete = self._record(resume)
+                ctx.summary.runs_done += 1
+                return ("done", None) if complete else ("stopped", None)
+            except DeviceError as e:
+                msg = f"{item.label}: device fault: {e}"
+                log.warning(msg)
+                ctx.progress.message(f"warning: {msg}")
+                station.stop_arms()
+                if not e.recoverable or attempt == retries:
+                    ctx.summary.runs_failed.append(msg)
+                    if not e.recoverable:
+                        station.broken = str(e)
+                    return "failed", msg
+                try:
+                    station.recover()
+                except DeviceError as e2:
+                    ctx.summary.runs_failed.append(f"{msg}; recovery failed: {e2}")
+                    station.broken = f"recovery failed: {e2}"
+                    return "failed", f"{msg}; recovery failed: {e2}"
+                ctx.summary.faults_recovered += 1
+                ctx.progress.message(f"recovered; retrying from waypoint {resume.waypoint} (approach at slow speed)")
+                attempt += 1
+            except ProgramRejected as e:
+                ctx.summary.runs_failed.append(f"{item.label}: {e}")
+                ctx.progress.message(f"error: {item.label}: {e}")
+                return "failed", f"{item.label}: {e}"
+
+    def _record(self, resume: Resume) -> bool:
+        """Record the run (from ``resume.waypoint`` after a fault) as whole episodes.
+
+        Returns False when a stop (signal, ``max_seconds``, low disk) cut the run short.
+        On a DeviceError, ``resume`` is updated with the waypoint to retry from and the next chunk index.
+        """
+        ctx, item, station, stream = self.ctx, self.item, self.station, self.ctx.stream
+        clock, plan = ctx.clock, ctx.config.plan
+        sim_time = ctx.config.clock == "sim"
+        motion = plan_motion(item, station, plan.fast_duration, start_waypoint=resume.waypoint)
+        fps = station.fps
+        per_episode = max(1, round(plan.episode_seconds * fps))
+        settle_frames = round(plan.settle_seconds * fps) if resume.waypoint == 0 else 0
+        total = math.ceil((settle_frames + motion.duration * fps) / per_episode) * per_episode
+        events = list(motion.gripper_events)
+        t_start: float | None = None
+        chunk = resume.chunk - 1
+        episode_frames = 0
+        frames = 0
+        base_meta = self._base_metadata(motion)
+        base_meta["start_waypoint"] = resume.waypoint
+        stream.last_frame_number = None  # frames the camera made between runs were not meant to be recorded
+        stream.run_info = {
+            "object": item.object.name, "category": item.object.category, "program": item.program,
+            "speed": item.speed, "run_index": item.index, "n_keypoints": item.object.n_keypoints,
+        }
+        poller = None if sim_time else StatePoller(lambda: stream.sample_states(station), ctx.state_rate)
+        next_state_t = clock.now()
+        try:
+            if poller:
+                poller.__enter__()
+            for k in range(total):
+                if k % per_episode == 0:
+                    if chunk >= 0:
+                        stream.close_episode(station, episode_frames == per_episode)
+                    if ctx.should_stop():
+                        break
+                    chunk += 1
+                    episode_frames = 0
+                    path = stream.open_episode({**base_meta, "chunk_index": chunk})
+                    if path is not None:
+                        self.episodes.append(path)
+                if k == settle_frames:
+                    t_start = self._start_motion(motion)
+                if t_start is not None:
+                    while events and events[0].time <= clock.now() - t_start:
+                        ev = events.pop(0)
+                        station.grippers[ev.arm].command(ev.closed, ev.width, ev.force)
+                if sim_time:  # joint states at state_rate up to the next frame time
+                    t_next = clock.now() + 1.0 / fps
+                    while next_state_t < t_next:
+                        clock.sleep_until(next_state_t)
+                        stream.sample_states(station)
+                        next_state_t += 1.0 / ctx.state_rate
+                frame = station.read_frame()
+                stream.record_frame(frame, station)
+                episode_frames += 1
+                frames += 1
+                ctx.summary.recorded_seconds += 1.0 / fps
+                if t_start is not None:  # a fault shows in the episode holding the frame it happened in
+                    for arm in station.arms.values():
+                        arm.wait_motion(0.0)  # raises DeviceError on a fault
+                ctx.progress.update(
+                    f"[{item.index + 1}] {item.label} | episode {stream.next_index - 1} "
+                    f"{episode_frames}/{per_episode} | recorded {ctx.summary.recorded_seconds:5.1f} s"
+                    + (f"/{ctx.max_seconds:.0f} s" if ctx.max_seconds else "")
+                    + f" | frames {ctx.summary.frames_captured} dropped {ctx.summary.frames_dropped}"
+                )
+                if ctx.stop_event.is_set():
+                    break
+            if chunk >= 0 and episode_frames:
+                stream.close_episode(station, episode_frames == per_episode)
+            if t_start is not None and not ctx.stop_event.is_set():
+                for arm in station.arms.values():
+                    if not arm.wait_motion(timeout=max(1.0, motion.duration)):
+                        raise DeviceError("arm did not finish its motion in time")
+            else:
+                for arm in station.arms.values():
+                    arm.stop()
+            return frames == total
+        except DeviceError:
+            stream.close_episode(station, False, fault=True)
+            resume.chunk = chunk + 1
+            if t_start is not None:
+                seg = int(motion.timed.segment_at(np.array([clock.now() - t_start]))[0])
+                resume.waypoint = motion.waypoint_offset + motion.timed.segments[seg].to_waypoint
+            raise
+        finally:
+            if poller:
+                poller.__exit__(None, None, None)
+                ctx.summary.errors.extend(poller.errors)
+
+    def _start_motion(self, motion: PlannedMotion) -> float:
+        """Start both arms together; returns the start time and keeps the largest start skew."""
+        clock, arms = self.ctx.clock, self.station.arms
+        t0 = clock.now()
+        arms["left"].start_motion(motion.left)
+        t1 = clock.now()
+        arms["right"].start_motion(motion.right)
+        skew = clock.now() - t0
+        self.ctx.summary.start_skew_s = max(self.ctx.summary.start_skew_s, skew)
+        log.debug("arm start skew %.3f ms (left call %.3f ms)", skew * 1e3, (t1 - t0) * 1e3)
+        return t0
+
+    def _base_metadata(self, motion: PlannedMotion) -> dict[str, Any]:
+        """The metadata every episode of this run opens with."""
+        item, station, config = self.item, self.station, self.ctx.config
+        cam = station.camera.intrinsics
+        return {
+            "object": item.object.name,
+            "category": item.object.category,
+            "program": item.program,
+            "speed": item.speed,
+            "repeat": item.repeat,
+            "run_index": item.index,
+            **self.ctx.run_meta,
+            "fps": station.fps,
+            "episode_seconds": config.plan.episode_seconds,
+            "segments": motion.segment_report,
+            "calibration": {
+                "width": cam.width, "height": cam.height, "K": cam.K.tolist(),
+                "T_world_cam": station.T_world_cam.tolist(),
+                "T_world_base": {n: station.bases[n].tolist() for n in ARMS},
+                "depth_scale": 0.001,
+            },
+            "station": config.station.name,
+            "clock": config.clock,
+            "software": {"trackdeform3d": __version__},
+            "arm_input_convention": (
+                "u (12,) = [left TCP xyz m, left rotvec rad, right TCP xyz m, right rotvec rad], world frame"
+            ),
+        }
