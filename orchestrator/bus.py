@@ -2,7 +2,7 @@
 
 Readers of frames use a ring channel (newest wins) so a slow subscriber never builds up
 latency; subscribers are polled with ``try_recv`` because a thread blocked in ``recv`` makes
-``undeclare`` abort the process (see DESIGN.md).
+``undeclare`` abort the process (docs/architecture.md, zenoh).
 """
 
 from __future__ import annotations

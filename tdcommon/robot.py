@@ -33,7 +33,7 @@ class LinkMesh:
 
 
 @functools.lru_cache(maxsize=1)
-def _panda() -> tuple:
+def panda_models() -> tuple:
     """(model, collision_model) of the Panda with hand, loaded once."""
     from example_robot_data import load
 
@@ -46,7 +46,7 @@ def panda_link_meshes() -> tuple[LinkMesh, ...]:
     """The Panda's collision geometry (≈2.3k triangles) as plain arrays, loaded once."""
     import open3d as o3d
 
-    _, cmodel = _panda()
+    _, cmodel = panda_models()
     out = []
     for g in cmodel.geometryObjects:
         if g.meshPath.endswith((".stl", ".STL", ".obj", ".dae")):
@@ -62,7 +62,7 @@ def panda_link_meshes() -> tuple[LinkMesh, ...]:
 def joint_limits() -> dict[str, np.ndarray]:
     """The Panda's published joint limits, each (7,): position lower/upper (rad), velocity (rad/s),
     acceleration (rad/s^2) and jerk (rad/s^3) from Franka's datasheet."""
-    model, _ = _panda()
+    model, _ = panda_models()
     return {
         "lower": model.lowerPositionLimit[:N_JOINTS].copy(),
         "upper": model.upperPositionLimit[:N_JOINTS].copy(),
@@ -79,7 +79,7 @@ class PandaKinematics:
         import pinocchio as pin
 
         self._pin = pin
-        self.model, _ = _panda()
+        self.model, _ = panda_models()
         self.data = self.model.createData()
         self.T_world_base = np.eye(4) if T_world_base is None else np.asarray(T_world_base, dtype=np.float64)
         self.tcp_id = self.model.getFrameId(TCP_FRAME)

@@ -27,14 +27,28 @@ CASES = [
 ]
 
 
+SDKS = ("franky", "rtde_control", "rtde_receive", "pyrealsense2", "depthai", "serial")
+
+
 @pytest.mark.parametrize(("kind", "type_name", "config", "protocol"), CASES)
-def test_driver_builds_without_sdk_and_matches_protocol(kind, type_name, config, protocol):
-    for sdk in ("franky", "rtde_control", "rtde_receive", "pyrealsense2", "depthai"):
-        assert sdk not in sys.modules or sys.modules[sdk] is None or isinstance(sys.modules[sdk], types.ModuleType)
+def test_driver_builds_without_sdk_and_matches_protocol(kind, type_name, config, protocol, monkeypatch):
+    """Building a driver (and closing it unconnected) imports no vendor SDK: with every SDK made
+    unimportable (``sys.modules[name] = None`` makes ``import name`` raise), it still works."""
+    for sdk in SDKS:
+        monkeypatch.setitem(sys.modules, sdk, None)
     cls = driver_class(kind, type_name)
     dev = cls(config, name="x", clock=None)
     assert isinstance(dev, protocol)
     dev.close()  # closing a never-connected driver is harmless
+    assert all(sys.modules[sdk] is None for sdk in SDKS)  # nothing replaced the blocked entries
+
+
+def test_connect_without_the_sdk_names_the_extra(monkeypatch):
+    """Connecting a driver whose SDK is missing says which extra installs it."""
+    monkeypatch.setitem(sys.modules, "pyrealsense2", None)
+    dev = driver_class("camera", "realsense")(RealSenseCameraConfig(), name="x", clock=None)
+    with pytest.raises(DriverUnavailable, match="realsense"):
+        dev.connect()
 
 
 def test_franky_refuses_to_load_next_to_pylibfranka(monkeypatch):

@@ -73,6 +73,33 @@ def test_both_arms_start_together(tmp_path: Path) -> None:
     assert [s["kind"] for s in meta[0]["segments"]] == ["move"] * 4  # started at the program's first waypoint
 
 
+def test_start_skew_is_measured_and_reported(tmp_path: Path) -> None:
+    """A left arm whose start call takes 4 ms (simulated) starts the right arm 4 ms late: the summary says so."""
+    starts: dict[str, float] = {}
+
+    def slow_left_start(station: Station) -> None:
+        left, right = station.arms["left"], station.arms["right"]
+        left_start, right_start = left.start_motion, right.start_motion
+
+        def slow(motion: Any) -> None:  # noqa: ANN401
+            left_start(motion)
+            starts["left"] = station.clock.now()
+            station.clock.sleep_until(station.clock.now() + 0.004)
+
+        def timed(motion: Any) -> None:  # noqa: ANN401
+            right_start(motion)
+            starts["right"] = station.clock.now()
+
+        left.start_motion = slow  # type: ignore[method-assign]
+        right.start_motion = timed  # type: ignore[method-assign]
+
+    summary = run(tmp_path, slow_left_start)
+    assert summary.runs_done == 1, summary.text()
+    assert starts["right"] - starts["left"] == pytest.approx(0.004, abs=1e-9)
+    assert summary.start_skew_s == pytest.approx(0.004, abs=1e-9)
+    assert "arm start skew   : 4.000 ms" in summary.text()
+
+
 def test_recoverable_arm_fault_is_recovered_and_the_run_completes(tmp_path: Path) -> None:
     def reflex(station: Station) -> None:
         station.arms["left"].inject_fault(station.clock.now() + FAULT_AFTER, recoverable=True,  # type: ignore[attr-defined]

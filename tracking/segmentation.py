@@ -4,6 +4,9 @@ Two entry points:
   * ``segment_by_difference``: reference depth D0 vs depth D1 after the arms moved (initialisation);
   * ``segment_against_background``: per-frame tracking against a static background depth model.
 Both return a voxel-down-sampled world-frame object cloud.
+
+One module (~640 lines) on purpose: both entry points and the growth and refinement steps share the
+same small helpers (pixel masks, the support plane, DBSCAN on voxels) and the ``Segmentation`` result.
 """
 
 from __future__ import annotations

@@ -130,9 +130,9 @@ def _prefixed(prefix: str) -> tuple:
     """Copies of the Panda model and collision model with names prefixed, meshes as convex hulls."""
     import pinocchio as pin
 
-    from tdcommon.robot import _panda
+    from tdcommon.robot import panda_models
 
-    model, cmodel = _panda()
+    model, cmodel = panda_models()
     m = pin.Model(model)
     for i in range(1, m.njoints):
         m.names[i] = prefix + m.names[i]

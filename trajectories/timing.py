@@ -3,7 +3,7 @@
 The free ruckig has no intermediate waypoints, so every move from one waypoint to the next is its
 own offline calculation with one ``ruckig.Ruckig(14)``: both arms start and stop together.
 
-Gentle stretching (see DESIGN.md): asking ruckig for ``minimum_duration`` alone gives the exact
+Gentle stretching (docs/architecture.md, decisions): asking ruckig for ``minimum_duration`` alone gives the exact
 duration but a jolty move (full acceleration for a few ms, then a slow cruise). Instead each
 segment's acceleration limits are scaled by ``s`` and its jerk limits set so that ramping that
 acceleration takes ``ramp_fraction`` of the requested duration; ``s`` is the smallest fraction

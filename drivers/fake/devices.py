@@ -6,6 +6,9 @@ on a fixed 300 Hz grid, using the arms' joint states and the grippers' openings 
 devices implement the Protocols of :mod:`drivers.base` and register with the station on
 construction by name ("left" / "right"). Everything is timed on the injected :class:`Clock`,
 so with a ``SimClock`` a run is deterministic and as fast as the CPU allows.
+
+One module (~580 lines) on purpose: the four devices and the station share one lock, one clock and
+the station's lazily advanced simulation; each device is a thin view of it.
 """
 
 from __future__ import annotations

@@ -5,6 +5,9 @@ z = 0), a floor and a back wall, seeded clutter boxes outside the workspace, bot
 object. Depth is z in the camera optical frame (x right, y down, z forward), quantised to
 uint16 millimetres (``depth_scale`` = 0.001) with noise ~ z^2, dropouts at depth edges and
 grazing angles and flying pixels. Everything per pixel is vectorised numpy.
+
+One module (~560 lines) on purpose: the static pre-render, the dynamic geometry pass and the noise
+model share the per-pixel state of :class:`SceneRenderer`; split, they would pass it around by hand.
 """
 
 from __future__ import annotations

@@ -11,6 +11,9 @@ attachments then keep every particle within its rest geodesic distance of the he
 table collides and velocities follow. Particles held by a closed gripper are pinned to the TCP
 with their offset in the TCP frame kept. Everything is deterministic for a given config
 (seeded perturbation only).
+
+One module (~650 lines) on purpose: the topology builders, the solver and the ground truth all
+work on the same particle arrays and constraint sets of one :class:`SimObject`.
 """
 
 from __future__ import annotations
@@ -624,10 +627,6 @@ class SimObject:
     def keypoints(self) -> np.ndarray:
         """(N, 3) float64 reference keypoints, metres, world frame, evenly spaced by rest arc length."""
         return np.asarray(self.topology.kp_map @ self.x)
-
-    def grasp_keypoints(self) -> dict[str, int]:
-        """Gripper name -> index of the keypoint nearest (in material coordinates) to the held particle."""
-        return {n: int(self.particle_keypoint[p]) for n, p in self.held.items()}
 
     def stretch_ratio(self) -> np.ndarray:
         """(S,) current / rest length of every structural edge (1 = inextensible)."""
