@@ -106,6 +106,10 @@ def _type_ok(module: ModuleType, tstr: str, value: Any) -> bool:
         return isinstance(value, int | float) and not isinstance(value, bool)
     if t == "str":
         return isinstance(value, str)
+    if t == "datetime.timedelta":
+        import datetime
+
+        return isinstance(value, datetime.timedelta)
     m = re.fullmatch(r"tuple\[(.*)\]", t)
     if m:
         items = _split_top(m.group(1))
@@ -138,3 +142,43 @@ def check_call(module: ModuleType, func: Any, args: tuple[Any, ...], kwargs: dic
             return params
     shown = "\n  ".join("(" + ", ".join(f"{p.name}: {p.type}" for p in s) + ")" for s in sigs)
     raise TypeError(f"{name or getattr(func, '__name__', func)}{args!r} {kwargs!r} matches no overload:\n  {shown}")
+
+
+class Checked:
+    """``double`` seen through ``real_cls``: only names the real class has, calls only its signatures take.
+
+    The double supplies the behaviour (a simulated robot); the real SDK class decides what
+    may be called and how. Properties are read through (the real class must have them).
+    """
+
+    def __init__(self, double: Any, real_cls: type, module: ModuleType) -> None:
+        object.__setattr__(self, "_double", double)
+        object.__setattr__(self, "_real", real_cls)
+        object.__setattr__(self, "_module", module)
+
+    def __getattr__(self, name: str) -> Any:
+        real = getattr(self._real, name)  # AttributeError where the real SDK has no such name
+        value = getattr(self._double, name)
+        if isinstance(real, property) or not callable(value):
+            return value
+
+        def call(*args: Any, **kwargs: Any) -> Any:
+            check_call(self._module, real, args, kwargs, name)
+            return value(*args, **kwargs)
+
+        return call
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        real = getattr(self._real, name)
+        assert isinstance(real, property) and real.fset is not None, f"{self._real.__name__}.{name} is read-only"
+        setattr(self._double, name, value)
+
+
+def checked_class(double_cls: type, real_cls: type, module: ModuleType) -> Any:
+    """A factory like ``real_cls(...)``: checks the constructor call, builds the double, wraps it in Checked."""
+
+    def make(*args: Any, **kwargs: Any) -> Checked:
+        check_call(module, real_cls.__init__, args, kwargs, "__init__")
+        return Checked(double_cls(*args, **kwargs), real_cls, module)
+
+    return make

@@ -79,7 +79,8 @@ def test_dwell_segment_holds_its_target(franky):
     first, dwell = fm.waypoints
     assert first.minimum_time.to_msec() == 500 and first.hold_target_duration.to_msec() == 0
     assert dwell.minimum_time is None and dwell.hold_target_duration.to_msec() == 1000
-    assert dwell.relative_dynamics_factor == 1.0
+    f = dwell.relative_dynamics_factor
+    assert (f.velocity, f.acceleration, f.jerk) == (1.0, 1.0, 1.0)
     assert a.wait_motion(2.0)
 
 

@@ -143,6 +143,8 @@ class JointWaypoint:
         assert position.shape == (7,)
         self.target = JointState(position)
         self.reference_type = reference_type
+        if isinstance(relative_dynamics_factor, int | float):  # franky converts a number implicitly
+            relative_dynamics_factor = RelativeDynamicsFactor(float(relative_dynamics_factor))
         self.relative_dynamics_factor = relative_dynamics_factor
         self.minimum_time = minimum_time
         self.hold_target_duration = hold_target_duration or Duration(0)
