@@ -19,6 +19,7 @@ class Param:
     name: str
     type: str
     has_default: bool
+    default: str = ""
 
 
 def _split_top(text: str) -> list[str]:
@@ -68,7 +69,7 @@ def overloads(func: Any, name: str | None = None) -> list[list[Param]]:
                 break
             head, _, default = part.partition(" = ")
             pname, _, ptype = head.partition(": ")
-            params.append(Param(pname.strip(), ptype.strip(), bool(default)))
+            params.append(Param(pname.strip(), ptype.strip(), bool(default), default.strip()))
         if params is None:
             continue
         if params and params[0].name == "self":

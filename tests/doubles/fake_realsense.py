@@ -60,6 +60,8 @@ class Intrinsics:
 
 
 class config:  # noqa: N801 - pyrealsense2's name
+    DOUBLE_ONLY = {"streams", "device"}
+
     def __init__(self) -> None:
         self.streams: dict[str, tuple[int, int, str, int]] = {}
         self.device: str | None = None
@@ -105,6 +107,8 @@ class _Device:
 
 
 class _VideoProfile:
+    DOUBLE_ONLY = {"w", "h"}
+
     def __init__(self, w: int, h: int) -> None:
         self.w, self.h = w, h
 
@@ -116,6 +120,8 @@ class _VideoProfile:
 
 
 class _Profile:
+    DOUBLE_ONLY = {"cfg"}
+
     def __init__(self, cfg: config) -> None:
         self.cfg = cfg
 
@@ -128,6 +134,8 @@ class _Profile:
 
 
 class _Frame:
+    DOUBLE_ONLY = {"data", "number", "stamp_ms"}
+
     def __init__(self, data: np.ndarray, number: int, stamp_ms: float) -> None:
         self.data, self.number, self.stamp_ms = data, number, stamp_ms
 
@@ -151,6 +159,8 @@ class _Frame:
 
 
 class _Frameset:
+    DOUBLE_ONLY = {"color", "depth", "aligned"}
+
     def __init__(self, color: _Frame, depth: _Frame, aligned: bool = False) -> None:
         self.color, self.depth, self.aligned = color, depth, aligned
 
