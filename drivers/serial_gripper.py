@@ -120,6 +120,22 @@ class SerialGripper:
     # ------------------------------------------------------------------ lifecycle
     def connect(self) -> None:
         """Open the port and run the activation sequence (reset, activate, wait for gSTA = 3)."""
+        self.open_port()
+        self.activate()
+
+    def probe(self) -> dict[str, int]:
+        """Open the port, read the status registers once and close it; nothing is written, nothing moves.
+
+        Raises DeviceError when the port cannot be opened or no gripper answers (for discovery).
+        """
+        self.open_port()
+        try:
+            return self.read_status(raise_fault=False)
+        finally:
+            self.close()
+
+    def open_port(self) -> None:
+        """Open the serial port with the configured line settings (8N1) without talking to the gripper."""
         try:
             import serial  # lazy: only stations with a serial gripper need it
         except ImportError as exc:
@@ -136,7 +152,6 @@ class SerialGripper:
             )
         except self._serial_exc as exc:
             raise DeviceError(f"{self.name}: cannot open {self.config.port}: {exc}") from exc
-        self.activate()
 
     def activate(self) -> None:
         """Reset then activate the gripper and wait until activation completes."""
@@ -203,8 +218,11 @@ class SerialGripper:
         """True once a status read showed the last command's position echoed in gPR."""
         return self._expected_pr is None
 
-    def read_status(self) -> dict[str, int]:
-        """The decoded input registers (gACT, gGTO, gSTA, gOBJ, gFLT, gPR, gPO, gCU)."""
+    def read_status(self, *, raise_fault: bool = True) -> dict[str, int]:
+        """The decoded input registers (gACT, gGTO, gSTA, gOBJ, gFLT, gPR, gPO, gCU).
+
+        A major fault (gFLT >= 0x0A) raises DeviceError unless ``raise_fault`` is False.
+        """
         reply = self._transact(
             bytes((self.config.slave_id, READ_INPUT))
             + STATUS_REGISTER.to_bytes(2, "big")
@@ -224,7 +242,7 @@ class SerialGripper:
             "gPO": b[4],
             "gCU": b[5],
         }
-        if status["gFLT"] >= 0x0A:  # 0x0A and above are major faults that need a reactivation
+        if raise_fault and status["gFLT"] >= 0x0A:  # 0x0A and above are major faults that need a reactivation
             raise DeviceError(f"{self.name}: gripper fault 0x{status['gFLT']:02X}", recoverable=True)
         return status
 
