@@ -9,7 +9,7 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from tdcommon.objects import Category
 from tdcommon.robot import HOME_Q
@@ -126,6 +126,15 @@ class SerialGripperConfig(StrictModel):
     timeout: float = Field(0.2, gt=0.0, le=5.0, description="per-request timeout, s")
     retries: int = Field(3, ge=0, le=10)
     stroke: float = Field(0.085, gt=0.0, le=0.2, description="full opening, m")
+    open_position: int = Field(
+        13, ge=0, le=254,
+        description="gPO with the fingers fully open (the 2F-85 manual's example reads 13 at the software limit)",
+    )
+    closed_position: int = Field(
+        226, ge=1, le=255,
+        description="gPO with the fingers fully closed on nothing (open_position + stroke / the manual's 0.4 mm "
+                    "position resolution); read it off a full close to calibrate one gripper",
+    )
     speed: float = Field(0.1, gt=0.0, le=0.5, description="default finger speed, m/s")
     force: float = Field(40.0, gt=0.0, le=500.0, description="default grasp force, N")
     min_speed: float = Field(0.02, gt=0.0, le=0.5, description="finger speed at register 0, m/s")
@@ -136,6 +145,13 @@ class SerialGripperConfig(StrictModel):
     state_period: float = Field(
         0.02, ge=0.0, le=1.0, description="reuse a status read this recent instead of a new Modbus request, s"
     )
+
+    @model_validator(mode="after")
+    def _positions_ordered(self) -> SerialGripperConfig:
+        if self.closed_position <= self.open_position:
+            raise ValueError(f"closed_position ({self.closed_position}) must be above open_position "
+                             f"({self.open_position})")
+        return self
 
 
 GripperConfig = Annotated[

@@ -23,8 +23,10 @@ from tdcommon.types import GripperState, JointMotion, JointState
 
 INSTALL_HINT = "pip install 'trackdeform3d[franka]'"
 
-# franky registers libfranka's exceptions as plain Python exceptions (no common base), so we
-# classify by name: these can be cleared by recover_from_errors() or a reconnect ...
+# franky exports libfranka's exceptions with ``franky.Exception`` as their common base, next
+# to franky's own (GripperException, MotionReuseException, ...) that derive from Python's
+# Exception. The fatal ones are checked first; these can be cleared by
+# recover_from_errors() or a reconnect ...
 _RECOVERABLE = (
     "ControlException",
     "CommandException",
@@ -34,6 +36,7 @@ _RECOVERABLE = (
     "MotionReuseException",
     "ReactionRecursionException",
     "InvalidMotionTypeException",
+    "TorqueSignalTimeoutException",
     "Exception",
 )
 # ... these cannot: wrong wheel for the robot's server version, no real-time kernel, bad model.

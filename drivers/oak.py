@@ -1,18 +1,19 @@
-"""Luxonis OAK-D through depthai: colour camera + stereo depth aligned to colour.
+"""Luxonis OAK-D through depthai 3.x: colour camera + stereo depth aligned to colour.
 
-Same RGBDCamera contract as the RealSense driver. The on-device pipeline is: colour camera
-(CAM_A) at the configured size and rate, the two mono cameras (CAM_B/CAM_C) into a
-``StereoDepth`` node with ``setDepthAlign(CAM_A)``, and a ``Sync`` node that pairs colour
-and depth by timestamp into one ``MessageGroup``. Both depthai 2.x (``ColorCamera`` /
-``MonoCamera`` / ``XLinkOut`` / ``Device(pipeline)``) and 3.x (``Camera.build`` /
-``requestOutput`` / ``createOutputQueue`` / ``Pipeline(device).start()``) are supported.
-Depth is uint16 millimetres (``depth_scale`` 0.001); intrinsics come from the device's
-calibration for CAM_A at the output size; ``device_stamp`` is ``getTimestampDevice()``.
+Same RGBDCamera contract as the RealSense driver. The on-device pipeline is: a ``Camera``
+node on CAM_A with an output requested at the configured size and rate, two ``Camera``
+nodes on CAM_B/CAM_C into a ``StereoDepth`` node with ``setDepthAlign(CAM_A)`` and
+``setOutputSize`` pinned to the colour size, and a ``Sync`` node that pairs colour and
+depth by timestamp into one ``MessageGroup`` read from a host queue
+(``createOutputQueue``). Only depthai 3.x is supported (2.x has no ``Camera.build`` /
+``requestOutput`` and needs ``XLinkOut``). Depth is uint16 millimetres (``depth_scale``
+0.001); intrinsics come from the colour frame's ``ImgTransformation`` (the K of the image
+as delivered, after scaling/cropping), or from the device calibration for CAM_A at the
+output size when a frame carries none; ``device_stamp`` is ``getTimestampDevice()``.
 """
 
 from __future__ import annotations
 
-from fractions import Fraction
 from typing import Any
 
 import numpy as np
@@ -24,36 +25,76 @@ from tdcommon.types import CameraIntrinsics, RGBDFrame
 
 INSTALL_HINT = "pip install 'trackdeform3d[oak]'"
 DEPTH_SCALE = 0.001  # depthai depth frames are millimetres
-COLOR_SENSOR = (1920, 1080)  # the v2 ColorCamera runs THE_1080_P and scales the ISP output
 POLL = 0.002  # s between queue polls
+MONO_SIZE = (640, 400)  # stereo input from the OV9282 mono pair (1280x800 binned 2x)
+QUEUE_SIZE = 4
+STEREO_PRESET = "DEFAULT"  # a PresetMode every 3.x release has (HIGH_DENSITY is 2.x only)
 
 NOMINAL_HFOV_DEG = 69.0  # OAK-D CAM_A (IMX378), used only before connect()
 
 
 def import_depthai() -> Any:
-    """Import depthai or raise DriverUnavailable with the install command."""
+    """Import depthai 3.x or raise DriverUnavailable with the install command."""
     try:
         import depthai as dai  # lazy: only OAK stations need it
     except ImportError as exc:
         raise DriverUnavailable(f"the OAK driver needs depthai: {INSTALL_HINT}") from exc
+    if depthai_major(dai) < 3:
+        raise DriverUnavailable(f"the OAK driver needs depthai 3.x, found {getattr(dai, '__version__', '?')}: "
+                                f"{INSTALL_HINT}")
     return dai
 
 
 def depthai_major(dai: Any) -> int:
-    """Major version of the imported depthai (2 or 3)."""
+    """Major version of the imported depthai (0 when it cannot be read)."""
     try:
-        return int(str(getattr(dai, "__version__", "2")).split(".")[0])
+        return int(str(getattr(dai, "__version__", "0")).split(".")[0])
     except ValueError:
-        return 2
+        return 0
 
 
-def isp_scale(width: int, height: int) -> tuple[int, int]:
-    """The v2 ISP scale (numerator, denominator) that turns 1920x1080 into ``width`` x ``height``."""
-    f = Fraction(width, COLOR_SENSOR[0]).limit_denominator(63)
-    if f > 1 or COLOR_SENSOR[0] * f != width or COLOR_SENSOR[1] * f != height:
-        raise DeviceError(f"{width}x{height} is not an ISP scale of {COLOR_SENSOR[0]}x{COLOR_SENSOR[1]}",
-                          recoverable=False)
-    return f.numerator, f.denominator
+def link_errors(dai: Any) -> tuple[type[BaseException], ...]:
+    """Exceptions a lost device link raises: RuntimeError (XLink) and the host queue's QueueException."""
+    queue_exc = getattr(getattr(dai, "MessageQueue", None), "QueueException", None)
+    if isinstance(queue_exc, type) and issubclass(queue_exc, BaseException):
+        return (RuntimeError, queue_exc)
+    return (RuntimeError,)
+
+
+def build_pipeline(dai: Any, pipeline: Any, config: OakCameraConfig) -> Any:
+    """Add colour, mono pair, aligned stereo depth and Sync nodes to ``pipeline``; return Sync's output.
+
+    The depth output is scaled to the colour size so the two images share pixels and K.
+    """
+    c = config
+    color = pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_A)
+    color_out = color.requestOutput((c.width, c.height), dai.ImgFrame.Type.RGB888i, fps=float(c.fps),
+                                    enableUndistortion=True)
+    stereo = pipeline.create(dai.node.StereoDepth)
+    stereo.setDefaultProfilePreset(getattr(dai.node.StereoDepth.PresetMode, STEREO_PRESET))
+    stereo.setLeftRightCheck(True)
+    stereo.setSubpixel(True)
+    stereo.setDepthAlign(dai.CameraBoardSocket.CAM_A)
+    stereo.setOutputSize(c.width, c.height)
+    for socket, port in ((dai.CameraBoardSocket.CAM_B, stereo.left), (dai.CameraBoardSocket.CAM_C, stereo.right)):
+        mono = pipeline.create(dai.node.Camera).build(socket)
+        mono.requestOutput(MONO_SIZE, fps=float(c.fps)).link(port)
+    sync = pipeline.create(dai.node.Sync)
+    color_out.link(sync.inputs["color"])
+    stereo.depth.link(sync.inputs["depth"])
+    return sync.out
+
+
+def frame_intrinsics(msg: Any, width: int, height: int) -> CameraIntrinsics | None:
+    """K of an ImgFrame from its ImgTransformation, or None when it has no valid one of that size."""
+    getter = getattr(msg, "getTransformation", None)
+    if getter is None:
+        return None
+    tr = getter()
+    if tr is None or not tr.isValid() or tuple(tr.getSize()) != (width, height):
+        return None
+    k = np.asarray(tr.getIntrinsicMatrix(), dtype=np.float64)
+    return CameraIntrinsics(width, height, float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
 
 
 class OakCamera:
@@ -69,102 +110,60 @@ class OakCamera:
         self._device: Any = None
         self._pipeline: Any = None
         self._queue: Any = None
+        self._errors: tuple[type[BaseException], ...] = (RuntimeError,)
         self._intrinsics: CameraIntrinsics | None = None
+        self._k_from_frame = False
         self.last_frame_number = -1
         self.dropped = 0
 
     @property
     def intrinsics(self) -> CameraIntrinsics:
-        """Calibrated intrinsics of the colour image once connected; a nominal 69° HFOV pinhole before."""
+        """Intrinsics of the colour image once connected; a nominal 69° HFOV pinhole before."""
         if self._intrinsics is None:
             return CameraIntrinsics.from_fov(self.config.width, self.config.height, NOMINAL_HFOV_DEG)
         return self._intrinsics
 
     # ------------------------------------------------------------------ lifecycle
     def connect(self) -> None:
-        """Build and start the on-device pipeline, read the calibration, wait for a first frame."""
+        """Open the device, build and start the pipeline, read the calibration, wait for a first frame.
+
+        Any failure closes what was opened; an API mismatch (AttributeError/TypeError from a
+        depthai build the driver does not match) is a non-recoverable DeviceError.
+        """
         dai = self._dai = import_depthai()
+        self._errors = link_errors(dai)
+        c = self.config
         try:
-            if depthai_major(dai) >= 3:
-                self._start_v3(dai)
-            else:
-                self._start_v2(dai)
+            info = dai.DeviceInfo(c.device_id) if c.device_id else None
+            self._device = dai.Device(info) if info is not None else dai.Device()
+            self._pipeline = dai.Pipeline(self._device)
+            out = build_pipeline(dai, self._pipeline, c)
+            self._queue = out.createOutputQueue(maxSize=QUEUE_SIZE, blocking=False)
             calib = self._device.readCalibration()
-            k = np.asarray(calib.getCameraIntrinsics(dai.CameraBoardSocket.CAM_A, self.config.width,
-                                                     self.config.height), dtype=np.float64)
-        except RuntimeError as exc:
-            if isinstance(exc, DeviceError):
-                self.close()
-                raise
-            self.close()
-            raise DeviceError(f"{self.name}: cannot start the OAK pipeline: {exc}") from exc
-        self._intrinsics = CameraIntrinsics(self.config.width, self.config.height, float(k[0, 0]), float(k[1, 1]),
-                                            float(k[0, 2]), float(k[1, 2]))
-        try:
-            self.read(timeout=self.config.start_timeout)  # the first frame proves the streams run
+            k = np.asarray(calib.getCameraIntrinsics(dai.CameraBoardSocket.CAM_A, c.width, c.height),
+                           dtype=np.float64)
+            self._intrinsics = CameraIntrinsics(c.width, c.height, float(k[0, 0]), float(k[1, 1]),
+                                                float(k[0, 2]), float(k[1, 2]))
+            self._k_from_frame = False
+            self._pipeline.start()
         except DeviceError:
             self.close()
             raise
-
-    def _device_info(self, dai: Any) -> Any:
-        return dai.DeviceInfo(self.config.device_id) if self.config.device_id else None
-
-    def _stereo(self, dai: Any, pipeline: Any) -> Any:
-        """The StereoDepth node, aligned to the colour camera."""
-        stereo = pipeline.create(dai.node.StereoDepth)
-        stereo.setDefaultProfilePreset(dai.node.StereoDepth.PresetMode.HIGH_DENSITY)
-        stereo.setLeftRightCheck(True)
-        stereo.setSubpixel(True)
-        stereo.setDepthAlign(dai.CameraBoardSocket.CAM_A)
-        return stereo
-
-    def _start_v2(self, dai: Any) -> None:
-        """depthai 2.x: ColorCamera ISP + MonoCameras -> StereoDepth -> Sync -> XLinkOut."""
-        c = self.config
-        num, den = isp_scale(c.width, c.height)
-        pipeline = dai.Pipeline()
-        color = pipeline.create(dai.node.ColorCamera)
-        color.setBoardSocket(dai.CameraBoardSocket.CAM_A)
-        color.setResolution(dai.ColorCameraProperties.SensorResolution.THE_1080_P)
-        color.setIspScale(num, den)
-        color.setFps(c.fps)
-        stereo = self._stereo(dai, pipeline)
-        for socket, port in ((dai.CameraBoardSocket.CAM_B, stereo.left), (dai.CameraBoardSocket.CAM_C, stereo.right)):
-            mono = pipeline.create(dai.node.MonoCamera)
-            mono.setBoardSocket(socket)
-            mono.setResolution(dai.MonoCameraProperties.SensorResolution.THE_400_P)
-            mono.setFps(c.fps)
-            mono.out.link(port)
-        sync = pipeline.create(dai.node.Sync)
-        color.isp.link(sync.inputs["color"])
-        stereo.depth.link(sync.inputs["depth"])
-        xout = pipeline.create(dai.node.XLinkOut)
-        xout.setStreamName("rgbd")
-        sync.out.link(xout.input)
-        info = self._device_info(dai)
-        self._device = dai.Device(pipeline, info) if info is not None else dai.Device(pipeline)
-        self._pipeline = pipeline
-        self._queue = self._device.getOutputQueue(name="rgbd", maxSize=4, blocking=False)
-
-    def _start_v3(self, dai: Any) -> None:
-        """depthai 3.x: Camera nodes with requested outputs -> StereoDepth -> Sync -> host queue."""
-        c = self.config
-        info = self._device_info(dai)
-        self._device = dai.Device(info) if info is not None else dai.Device()
-        pipeline = dai.Pipeline(self._device)
-        color = pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_A)
-        color_out = color.requestOutput((c.width, c.height), dai.ImgFrame.Type.RGB888i, fps=c.fps,
-                                        enableUndistortion=True)
-        stereo = self._stereo(dai, pipeline)
-        for socket, port in ((dai.CameraBoardSocket.CAM_B, stereo.left), (dai.CameraBoardSocket.CAM_C, stereo.right)):
-            mono = pipeline.create(dai.node.Camera).build(socket)
-            mono.requestOutput((640, 400), fps=c.fps).link(port)
-        sync = pipeline.create(dai.node.Sync)
-        color_out.link(sync.inputs["color"])
-        stereo.depth.link(sync.inputs["depth"])
-        self._queue = sync.out.createOutputQueue(maxSize=4, blocking=False)
-        self._pipeline = pipeline
-        pipeline.start()
+        except (AttributeError, TypeError) as exc:
+            self.close()
+            raise DeviceError(f"{self.name}: depthai {getattr(dai, '__version__', '?')} does not match the OAK "
+                              f"driver: {exc}", recoverable=False) from exc
+        except self._errors as exc:
+            self.close()
+            raise DeviceError(f"{self.name}: cannot start the OAK pipeline: {exc}") from exc
+        except BaseException:
+            self.close()
+            raise
+        try:
+            self.read(timeout=c.start_timeout)  # the first frame proves the streams run
+        except DeviceError:
+            self.close()
+            raise
 
     def close(self) -> None:
         """Stop the pipeline and release the device (idempotent)."""
@@ -174,7 +173,7 @@ class OakCamera:
             if obj is not None and hasattr(obj, method):
                 try:
                     getattr(obj, method)()
-                except RuntimeError:
+                except self._errors:
                     pass
 
     def recover(self) -> None:
@@ -201,13 +200,16 @@ class OakCamera:
             depth = np.array(depth_msg.getFrame(), dtype=np.uint16, copy=True)
             stamp = float(color_msg.getTimestampDevice().total_seconds())
             number = int(color_msg.getSequenceNum())
-        except RuntimeError as exc:  # XLink errors surface as RuntimeError
-            if isinstance(exc, DeviceError):
-                raise
+            k = None if self._k_from_frame else frame_intrinsics(color_msg, self.config.width, self.config.height)
+        except DeviceError:
+            raise
+        except self._errors as exc:  # XLink errors and a closed queue
             raise DeviceError(f"{self.name}: device link failed: {exc}") from exc
         if color.shape[:2] != depth.shape or color.shape[:2] != (self.config.height, self.config.width):
             raise DeviceError(f"{self.name}: colour {color.shape[:2]} and depth {depth.shape} do not match the "
                               f"configured {self.config.height}x{self.config.width}", recoverable=False)
+        if k is not None:
+            self._intrinsics, self._k_from_frame = k, True
         if self.last_frame_number >= 0 and number > self.last_frame_number + 1:
             self.dropped += number - self.last_frame_number - 1
         self.last_frame_number = number

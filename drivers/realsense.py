@@ -4,7 +4,11 @@ Streams RGB8 colour and Z16 depth at the configured size and rate, aligns every 
 to the colour camera with ``rs.align``, and reports the colour stream's intrinsics and the
 depth sensor's ``depth_scale`` (metres per depth unit). ``device_stamp`` is the frame's
 hardware timestamp (``frame_timestamp`` metadata, µs -> s, when the firmware provides it;
-otherwise ``get_timestamp()`` ms -> s). pyrealsense2 is imported lazily.
+otherwise ``get_timestamp()`` ms -> s). The metadata is a 32-bit microsecond counter that
+wraps every 2**32 µs (~71.6 min); it is unwrapped here so the stamps of an overnight
+episode keep increasing. ``laser_power`` is rounded to the option's step and clamped to its
+range as the device reports them (librealsense rejects an off-step value). pyrealsense2 is
+imported lazily.
 """
 
 from __future__ import annotations
@@ -21,6 +25,48 @@ from tdcommon.types import CameraIntrinsics, RGBDFrame
 INSTALL_HINT = "pip install 'trackdeform3d[realsense]' (and the system library libusb-1.0-0)"
 
 NOMINAL_HFOV_DEG = 69.0  # D4xx colour camera, used only before connect()
+STAMP_PERIOD_US = 1 << 32  # the frame_timestamp metadata counter wraps at 2**32 µs
+
+
+class StampUnwrapper:
+    """Unwraps a counter that wraps at ``period``: a step back by more than half a period is a wrap."""
+
+    def __init__(self, period: int = STAMP_PERIOD_US) -> None:
+        self.period = period
+        self.wraps = 0
+        self._last: int | None = None
+
+    def __call__(self, raw: int) -> int:
+        """The unwrapped value of ``raw`` (same unit), monotonic across wraps."""
+        raw = int(raw) % self.period
+        if self._last is not None and raw < self._last - self.period // 2:
+            self.wraps += 1
+        self._last = raw
+        return raw + self.wraps * self.period
+
+
+def snap_option(value: float, lo: float, hi: float, step: float) -> float:
+    """``value`` clamped to [lo, hi] and rounded to the nearest ``lo + k * step``."""
+    v = min(max(float(value), lo), hi)
+    if step > 0:
+        v = lo + round((v - lo) / step) * step
+        if v > hi + 1e-9:
+            v -= step
+    return float(v)
+
+
+def set_laser_power(rs: Any, sensor: Any, milliwatts: float) -> float | None:
+    """Set the depth sensor's laser power to ``milliwatts`` on the option's own grid; the value set.
+
+    Returns None when the sensor has no writable laser_power (e.g. a recording being played).
+    """
+    opt = rs.option.laser_power
+    if not sensor.supports(opt) or sensor.is_option_read_only(opt):
+        return None
+    r = sensor.get_option_range(opt)
+    value = snap_option(milliwatts, float(r.min), float(r.max), float(r.step))
+    sensor.set_option(opt, value)
+    return value
 
 
 def import_rs() -> Any:
@@ -49,6 +95,8 @@ class RealSenseCamera:
         self.serial: str | None = None
         self.last_frame_number = -1
         self.dropped = 0  # frames skipped by the device (frame-number gaps)
+        self.laser_power: float | None = None  # mW actually set (on the option's step), None if untouched
+        self._unwrap = StampUnwrapper()  # kept across reconnects: the device counter keeps running
 
     @property
     def intrinsics(self) -> CameraIntrinsics:
@@ -78,8 +126,8 @@ class RealSenseCamera:
             self.serial = device.get_info(rs.camera_info.serial_number)
             depth_sensor = device.first_depth_sensor()
             self.depth_scale = float(depth_sensor.get_depth_scale())
-            if c.laser_power is not None and depth_sensor.supports(rs.option.laser_power):
-                depth_sensor.set_option(rs.option.laser_power, float(c.laser_power))
+            if c.laser_power is not None:
+                self.laser_power = set_laser_power(rs, depth_sensor, c.laser_power)
             intr = profile.get_stream(rs.stream.color).as_video_stream_profile().get_intrinsics()
             self._intrinsics = CameraIntrinsics(int(intr.width), int(intr.height), float(intr.fx), float(intr.fy),
                                                 float(intr.ppx), float(intr.ppy))
@@ -130,10 +178,10 @@ class RealSenseCamera:
         return RGBDFrame(color_img, depth_img, self.depth_scale, self.intrinsics, stamp, host_stamp, number)
 
     def _device_stamp(self, frame: Any) -> float:
-        """Hardware timestamp of ``frame`` in seconds."""
+        """Hardware timestamp of ``frame`` in seconds (the 32-bit µs metadata counter unwrapped)."""
         meta = self._rs.frame_metadata_value.frame_timestamp
         if frame.supports_frame_metadata(meta):
-            return float(frame.get_frame_metadata(meta)) * 1e-6
+            return float(self._unwrap(int(frame.get_frame_metadata(meta)))) * 1e-6
         return float(frame.get_timestamp()) * 1e-3
 
     def recover(self) -> None:
@@ -145,11 +193,19 @@ class RealSenseCamera:
         except DeviceError:
             pass
         rs = self._rs or import_rs()
+        wanted = self.config.serial or self.serial
+        reset = None
         try:
             for dev in rs.context().query_devices():
-                if self.serial is None or dev.get_info(rs.camera_info.serial_number) == self.serial:
+                serial = dev.get_info(rs.camera_info.serial_number)
+                if wanted is None or serial == wanted:
                     dev.hardware_reset()
+                    reset = serial
                     break
         except RuntimeError as exc:
             raise DeviceError(f"{self.name}: hardware reset failed: {exc}") from exc
-        raise DeviceError(f"{self.name}: device reset; it re-enumerates in a few seconds, retry recover()")
+        if reset is None:
+            which = f"with serial {wanted}" if wanted else "at all"
+            raise DeviceError(f"{self.name}: restart failed and no RealSense device {which} is connected; "
+                              "check the USB cable, then retry recover()")
+        raise DeviceError(f"{self.name}: device {reset} reset; it re-enumerates in a few seconds, retry recover()")

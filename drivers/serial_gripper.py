@@ -4,8 +4,12 @@ The gripper exposes three output registers (action request, position, speed/forc
 0x03E8, written with function 0x10, and three input registers (status, fault, position,
 current) at 0x07D0, read with function 0x04. Every frame carries a CRC-16/Modbus that we
 compute and check here; a timed-out or corrupted reply is retried ``retries`` times before
-a :class:`~drivers.base.DeviceError`. Widths are metres, forces newtons, speeds m/s; the
-0-255 register values are mapped linearly over the configured ranges.
+a :class:`~drivers.base.DeviceError`. Widths are metres, forces newtons, speeds m/s. A
+finger position maps linearly between ``open_position`` (gPO fully open: the manual's example
+reads 13, the fingers' software limit, not 0) and ``closed_position`` (gPO fully closed);
+speed and force registers map linearly over the configured ranges. A status is trusted only
+once its position request echo (gPR) equals the last command's position: before that its
+gOBJ still describes the previous command.
 """
 
 from __future__ import annotations
@@ -84,18 +88,22 @@ class SerialGripper:
         self._lock = threading.Lock()
         self._serial_exc: tuple[type[BaseException], ...] = (OSError,)
         self._last_state: GripperState | None = None
+        self._expected_pr: int | None = None  # position of the last command, until gPR echoes it
         self.requests = 0  # Modbus transactions sent (for health reporting)
         self.retried = 0  # transactions that needed a retry
 
     # ------------------------------------------------------------------ unit mapping
     def width_to_register(self, width: float) -> int:
-        """Opening width (m) -> position request (0 = fully open, 255 = fully closed)."""
-        w = min(max(width, 0.0), self.config.stroke)
-        return int(round((1.0 - w / self.config.stroke) * 255))
+        """Opening width (m) -> position request on the calibrated open..closed gPO range."""
+        c = self.config
+        w = min(max(width, 0.0), c.stroke)
+        return int(round(c.open_position + (1.0 - w / c.stroke) * (c.closed_position - c.open_position)))
 
     def register_to_width(self, value: int) -> float:
-        """Position register -> opening width (m)."""
-        return (1.0 - value / 255.0) * self.config.stroke
+        """Position register (gPO) -> opening width (m), clamped to [0, stroke]."""
+        c = self.config
+        a = (value - c.open_position) / (c.closed_position - c.open_position)
+        return (1.0 - min(max(a, 0.0), 1.0)) * c.stroke
 
     def speed_to_register(self, speed: float) -> int:
         """Finger speed (m/s) -> speed register, clamped to the gripper's range."""
@@ -112,6 +120,22 @@ class SerialGripper:
     # ------------------------------------------------------------------ lifecycle
     def connect(self) -> None:
         """Open the port and run the activation sequence (reset, activate, wait for gSTA = 3)."""
+        self.open_port()
+        self.activate()
+
+    def probe(self) -> dict[str, int]:
+        """Open the port, read the status registers once and close it; nothing is written, nothing moves.
+
+        Raises DeviceError when the port cannot be opened or no gripper answers (for discovery).
+        """
+        self.open_port()
+        try:
+            return self.read_status(raise_fault=False)
+        finally:
+            self.close()
+
+    def open_port(self) -> None:
+        """Open the serial port with the configured line settings (8N1) without talking to the gripper."""
         try:
             import serial  # lazy: only stations with a serial gripper need it
         except ImportError as exc:
@@ -128,7 +152,6 @@ class SerialGripper:
             )
         except self._serial_exc as exc:
             raise DeviceError(f"{self.name}: cannot open {self.config.port}: {exc}") from exc
-        self.activate()
 
     def activate(self) -> None:
         """Reset then activate the gripper and wait until activation completes."""
@@ -154,12 +177,16 @@ class SerialGripper:
 
     # ------------------------------------------------------------------ commands
     def command(self, closed: bool, width: float | None = None, force: float | None = None) -> None:
-        """Start grasping (position 255 with ``force`` N) or opening (to ``width`` m, or fully)."""
+        """Start grasping (position 255 with ``force`` N) or opening (to ``width`` m, or fully: position 0).
+
+        Full open/close ask for 0/255 and the fingers stop at their software limits.
+        """
         if closed:
             position = 255 if width is None else self.width_to_register(width)
         else:
-            position = self.width_to_register(self.config.stroke if width is None else width)
+            position = 0 if width is None else self.width_to_register(width)
         self._last_state = None  # the next read_state must see the new command
+        self._expected_pr = position
         self.write_action(
             R_ACT | R_GTO,
             position,
@@ -177,12 +204,25 @@ class SerialGripper:
         if last is not None and self._clock.now() - last.stamp < self.config.state_period:
             return last
         status = self.read_status()
+        width = self.register_to_width(status["gPO"])
+        if self._expected_pr is not None and status["gPR"] != self._expected_pr:
+            # not yet the new command's status: gPO is live, gOBJ still the old command's
+            return GripperState(self._clock.now(), width, False)
+        self._expected_pr = None
         grasped = status["gOBJ"] in (OBJ_OPENING_CONTACT, OBJ_CLOSING_CONTACT)
-        self._last_state = GripperState(self._clock.now(), self.register_to_width(status["gPO"]), grasped)
+        self._last_state = GripperState(self._clock.now(), width, grasped)
         return self._last_state
 
-    def read_status(self) -> dict[str, int]:
-        """The decoded input registers (gACT, gGTO, gSTA, gOBJ, gFLT, gPR, gPO, gCU)."""
+    @property
+    def command_acknowledged(self) -> bool:
+        """True once a status read showed the last command's position echoed in gPR."""
+        return self._expected_pr is None
+
+    def read_status(self, *, raise_fault: bool = True) -> dict[str, int]:
+        """The decoded input registers (gACT, gGTO, gSTA, gOBJ, gFLT, gPR, gPO, gCU).
+
+        A major fault (gFLT >= 0x0A) raises DeviceError unless ``raise_fault`` is False.
+        """
         reply = self._transact(
             bytes((self.config.slave_id, READ_INPUT))
             + STATUS_REGISTER.to_bytes(2, "big")
@@ -202,7 +242,7 @@ class SerialGripper:
             "gPO": b[4],
             "gCU": b[5],
         }
-        if status["gFLT"] >= 0x0A:  # 0x0A and above are major faults that need a reactivation
+        if raise_fault and status["gFLT"] >= 0x0A:  # 0x0A and above are major faults that need a reactivation
             raise DeviceError(f"{self.name}: gripper fault 0x{status['gFLT']:02X}", recoverable=True)
         return status
 

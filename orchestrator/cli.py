@@ -245,7 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
     rc.add_argument("directory")
     rc.set_defaults(func=cmd_recover)
 
-    for module in ("orchestrator.cli_program", "orchestrator.cli_tracking"):
+    for module in ("orchestrator.cli_program", "orchestrator.cli_tracking", "orchestrator.cli_devices"):
         try:
             mod = __import__(module, fromlist=["register"])
         except ModuleNotFoundError as e:

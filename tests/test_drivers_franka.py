@@ -61,8 +61,8 @@ def test_motion_becomes_waypoints_with_minimum_times(franky):
     (fm, asynchronous) = [c[2] for c in robot.calls if c[1] == "move"][0]
     assert asynchronous is True
     assert len(fm.waypoints) == 3
-    assert [w.minimum_time.ms for w in fm.waypoints] == [400, 200, 300]
-    assert np.allclose(fm.waypoints[1].target, HOME + 0.2)
+    assert [w.minimum_time.to_msec() for w in fm.waypoints] == [400, 200, 300]
+    assert np.allclose(fm.waypoints[1].target.position, HOME + 0.2)
     f = fm.waypoints[0].relative_dynamics_factor
     assert f.velocity == 1.0 and f.acceleration == pytest.approx(0.04) and f.jerk == pytest.approx(0.04)
     assert a.wait_motion(timeout=2.0)
@@ -77,9 +77,10 @@ def test_dwell_segment_holds_its_target(franky):
     a.start_motion(m)
     fm = [c[2][0] for c in franky.Robot.instances[0].calls if c[1] == "move"][0]
     first, dwell = fm.waypoints
-    assert first.minimum_time.ms == 500 and first.hold_target_duration.ms == 0
-    assert dwell.minimum_time is None and dwell.hold_target_duration.ms == 1000
-    assert dwell.relative_dynamics_factor == 1.0
+    assert first.minimum_time.to_msec() == 500 and first.hold_target_duration.to_msec() == 0
+    assert dwell.minimum_time is None and dwell.hold_target_duration.to_msec() == 1000
+    f = dwell.relative_dynamics_factor
+    assert (f.velocity, f.acceleration, f.jerk) == (1.0, 1.0, 1.0)
     assert a.wait_motion(2.0)
 
 

@@ -26,11 +26,11 @@ def cam(**kw) -> RealSenseCamera:
 
 
 def test_connect_configures_streams_and_reads_calibration(rs):
-    c = cam(serial="123456789012", laser_power=150.0)
+    c = cam(serial="123456789012", laser_power=160.0)
     c.connect()
     assert ("color", 640, 360, "rgb8", 30) in rs.STATE.enabled
     assert ("depth", 640, 360, "z16", 30) in rs.STATE.enabled
-    assert rs.STATE.options["laser_power"] == 150.0
+    assert rs.STATE.options["laser_power"] == 150.0 == c.laser_power  # on the option's 30 mW step
     assert c.depth_scale == 0.001 and c.serial == "123456789012"
     k = c.intrinsics
     assert (k.width, k.height, k.fx, k.cx, k.cy) == (640, 360, 576.0, 319.7, 180.7)
@@ -48,11 +48,41 @@ def test_read_returns_aligned_rgbd_frame_with_hardware_stamp(rs):
     assert f.depth_scale == 0.001 and f.intrinsics == c.intrinsics
     assert rs.STATE.timeouts[-1] == 500
     assert f.frame_number == 2  # the first frame was read by connect()
-    assert f.device_stamp == pytest.approx(1.7e9 + 2 / 30)
+    assert f.device_stamp == pytest.approx(1.0 + 2 / 30)
     assert f.host_stamp == 5.0
     assert f.depth_m()[0, 0] == pytest.approx(1.002)
     rs.STATE.metadata = False  # firmware without metadata: get_timestamp() ms
-    assert c.read().device_stamp == pytest.approx(1.7e9 + 3 / 30)
+    assert c.read().device_stamp == pytest.approx(1.0 + 3 / 30)
+
+
+def test_device_stamp_is_unwrapped_across_the_32_bit_counter_wrap(rs):
+    rs.STATE.stamp_offset_us = (1 << 32) - 1_000_000 - 3 * 33_333  # the counter wraps after a few frames
+    c = cam()
+    c.connect()
+    stamps = [c.read().device_stamp for _ in range(6)]
+    assert all(b - a == pytest.approx(1 / 30, abs=1e-5) for a, b in zip(stamps, stamps[1:], strict=False))
+    assert stamps[-1] > 4294.0  # past 2**32 µs, not back near 0
+
+
+def test_laser_power_is_clamped_and_rounded_to_the_option_step(rs):
+    from drivers.realsense import snap_option
+
+    assert snap_option(160.0, 0.0, 360.0, 30.0) == 150.0
+    assert snap_option(170.0, 0.0, 360.0, 30.0) == 180.0
+    assert snap_option(400.0, 0.0, 360.0, 30.0) == 360.0
+    assert snap_option(355.0, 0.0, 350.0, 30.0) == 330.0  # never above the range
+    c = cam(laser_power=359.0)
+    c.connect()
+    assert rs.STATE.options["laser_power"] == 360.0
+
+
+def test_recover_without_a_device_does_not_claim_a_reset(rs, monkeypatch):
+    c = cam(serial="999")
+    rs.STATE.start_failures = 10
+    monkeypatch.setattr(rs.context, "query_devices", lambda self: [])
+    with pytest.raises(DeviceError, match="no RealSense device with serial 999") as info:
+        c.recover()
+    assert "reset;" not in str(info.value) and rs.STATE.resets == 0
 
 
 def test_frame_timeout_raises_then_recover_restarts(rs):

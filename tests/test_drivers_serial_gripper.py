@@ -55,14 +55,45 @@ def test_open_and_grasp_map_units_to_registers(sim):
     g.command(closed=False)
     assert sim.writes[-1] == bytes((0x09, 0, 0, 0, 255, 255))  # rACT|rGTO, fully open, max speed/force
     st = g.read_state()
+    assert sim.position == 13  # the fingers stop at their software limit, as in the manual's example
     assert st.width == pytest.approx(0.085) and not st.grasped
     g.command(closed=False, width=0.0425)
-    assert sim.writes[-1][3] == 128
+    assert sim.writes[-1][3] == 120  # half way between gPO 13 (open) and 226 (closed)
     g.command(closed=True, force=20.0)
     assert sim.writes[-1][3] == 255 and sim.writes[-1][5] == 0  # min force -> register 0
     st = g.read_state()
     assert st.grasped  # fingers stopped on the object (gOBJ = 2)
     assert st.width == pytest.approx(g.register_to_width(200))
+
+
+def test_width_follows_the_calibrated_position_range(sim):
+    g = make(open_position=13, closed_position=226)
+    assert g.register_to_width(13) == pytest.approx(0.085)
+    assert g.register_to_width(0) == pytest.approx(0.085)  # clamped
+    assert g.register_to_width(226) == pytest.approx(0.0)
+    assert g.register_to_width(255) == pytest.approx(0.0)
+    assert g.width_to_register(g.register_to_width(150)) == 150
+    with pytest.raises(ValueError, match="closed_position"):
+        SerialGripperConfig(port="/dev/ttyUSB0", open_position=200, closed_position=100)
+
+
+def test_status_is_trusted_only_after_the_position_echo(monkeypatch):
+    sim = RobotiqSim(object_at=100, echo_polls=2)
+    monkeypatch.setitem(sys.modules, "serial", make_module(sim))
+    g = make()
+    g.connect()
+    g.command(closed=True)
+    for _ in range(10):
+        st = g.read_state()
+        if g.command_acknowledged:
+            break
+    assert st.grasped and st.width == pytest.approx(g.register_to_width(100))
+    g.command(closed=False)
+    stale = g.read_state()  # gPR still echoes the grasp: its gOBJ says "object while closing"
+    assert not g.command_acknowledged and not stale.grasped
+    g.read_state()
+    st = g.read_state()
+    assert g.command_acknowledged and not st.grasped and st.width == pytest.approx(0.085)
 
 
 def test_state_reads_are_rate_limited(sim):

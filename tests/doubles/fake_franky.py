@@ -21,41 +21,91 @@ import numpy as np
 
 builtins_exc = builtins.Exception
 
+# Names a double offers that the real franky does not: test bookkeeping and fault injection.
+DOUBLE_ONLY = {"builtins_exc", "FrankaException", "make_module", "motion_duration", "DOUBLE_ONLY"}
+
 
 class FrankaException(builtins_exc):
-    """franka::Exception (exported by franky as ``franky.Exception``)."""
+    """franka::Exception, exported by franky as ``franky.Exception``: the base of libfranka's exceptions."""
 
 
-class ControlException(builtins_exc):
-    """franka::ControlException (a reflex during a motion)."""
-
-
-class CommandException(builtins_exc):
+class CommandException(FrankaException):
     """franka::CommandException (command refused, e.g. in reflex mode)."""
 
 
-class NetworkException(builtins_exc):
-    """franka::NetworkException (connection lost)."""
+class ControlException(FrankaException):
+    """franka::ControlException (a reflex during a motion)."""
 
 
-class IncompatibleVersionException(builtins_exc):
+class IncompatibleVersionException(FrankaException):
     """franka::IncompatibleVersionException (wrong wheel for the robot server)."""
 
 
+class InvalidOperationException(FrankaException):
+    """franka::InvalidOperationException."""
+
+
+class ModelException(FrankaException):
+    """franka::ModelException."""
+
+
+class NetworkException(FrankaException):
+    """franka::NetworkException (connection lost)."""
+
+
+class ProtocolException(FrankaException):
+    """franka::ProtocolException."""
+
+
+class RealtimeException(FrankaException):
+    """franka::RealtimeException (no real-time kernel)."""
+
+
 class GripperException(builtins_exc):
-    """franky::GripperException."""
+    """franky::GripperException (franky's own, not a franka::Exception)."""
+
+
+class InvalidMotionTypeException(builtins_exc):
+    """franky::InvalidMotionTypeException."""
+
+
+class MotionReuseException(builtins_exc):
+    """franky::MotionReuseException."""
+
+
+class ReactionRecursionException(builtins_exc):
+    """franky::ReactionRecursionException."""
+
+
+class TorqueSignalTimeoutException(builtins_exc):
+    """franky::TorqueSignalTimeoutException."""
+
+
+class DeskError(builtins_exc):
+    """franky.DeskError (Desk web API)."""
+
+
+class FrankaAPIError(DeskError):
+    """franky.FrankaAPIError."""
+
+
+class TakeControlTimeoutError(DeskError):
+    """franky.TakeControlTimeoutError."""
 
 
 class Duration:
-    """franka::Duration: integer milliseconds."""
+    """franka::Duration: integer milliseconds (``to_msec()`` / ``to_sec()``)."""
 
     def __init__(self, ms: int = 0) -> None:
         if not isinstance(ms, int):
             raise TypeError("Duration takes integer milliseconds")
-        self.ms = ms
+        self._ms = ms
+
+    def to_msec(self) -> int:
+        return self._ms
 
     def to_sec(self) -> float:
-        return self.ms / 1000.0
+        return self._ms / 1000.0
 
 
 class RelativeDynamicsFactor:
@@ -67,6 +117,13 @@ class RelativeDynamicsFactor:
         self.jerk = velocity if jerk is None else jerk
 
 
+class ReferenceType:
+    """franky.ReferenceType."""
+
+    Absolute = "Absolute"
+    Relative = "Relative"
+
+
 @dataclass
 class JointState:
     position: np.ndarray
@@ -76,35 +133,41 @@ class JointState:
 class JointWaypoint:
     """franky.JointWaypoint (franky >= 1.0 signature: minimum_time is a Duration)."""
 
-    def __init__(self, target: Any, reference_type: Any = None, relative_dynamics_factor: Any = 1.0,
+    def __init__(self, target: Any, reference_type: Any = ReferenceType.Absolute, relative_dynamics_factor: Any = 1.0,
                  minimum_time: Duration | None = None, hold_target_duration: Duration | None = None,
                  max_total_duration: Duration | None = None) -> None:
-        for value in (minimum_time, hold_target_duration):
+        for value in (minimum_time, hold_target_duration, max_total_duration):
             if value is not None and not isinstance(value, Duration):
-                raise TypeError("minimum_time / hold_target_duration must be a Duration")
-        self.target = np.asarray(target, dtype=float)
-        assert self.target.shape == (7,)
+                raise TypeError("minimum_time / hold_target_duration / max_total_duration must be a Duration")
+        position = np.asarray(target.position if isinstance(target, JointState) else target, dtype=float)
+        assert position.shape == (7,)
+        self.target = JointState(position)
+        self.reference_type = reference_type
+        if isinstance(relative_dynamics_factor, int | float):  # franky converts a number implicitly
+            relative_dynamics_factor = RelativeDynamicsFactor(float(relative_dynamics_factor))
         self.relative_dynamics_factor = relative_dynamics_factor
         self.minimum_time = minimum_time
         self.hold_target_duration = hold_target_duration or Duration(0)
+        self.max_total_duration = max_total_duration
 
 
 class JointWaypointMotion:
     def __init__(self, waypoints: list[JointWaypoint], relative_dynamics_factor: Any = 1.0,
                  return_when_finished: bool = True) -> None:
         self.waypoints = list(waypoints)
-
-    def duration(self) -> float:
-        return sum((w.minimum_time.to_sec() if w.minimum_time else 0.0) + w.hold_target_duration.to_sec()
-                   for w in self.waypoints)
+        self.relative_dynamics_factor = relative_dynamics_factor
+        self.return_when_finished = return_when_finished
 
 
 class JointStopMotion:
     def __init__(self, relative_dynamics_factor: Any = 1.0) -> None:
-        self.waypoints: list[JointWaypoint] = []
+        self.relative_dynamics_factor = relative_dynamics_factor
 
-    def duration(self) -> float:
-        return 0.0
+
+def motion_duration(motion: Any) -> float:
+    """How long the double lets ``motion`` run: its waypoints' minimum and hold times (0 for a stop)."""
+    return sum((w.minimum_time.to_sec() if w.minimum_time else 0.0) + w.hold_target_duration.to_sec()
+               for w in getattr(motion, "waypoints", []))
 
 
 class Robot:
@@ -115,10 +178,13 @@ class Robot:
     connect_error: builtins_exc | None = None
     initial_q = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
 
+    DOUBLE_ONLY = {"instances", "time_scale", "connect_error", "initial_q", "calls", "q", "fault", "disconnected",
+                   "host"}
+
     def __init__(self, fci_hostname: str, **kwargs: Any) -> None:
         if Robot.connect_error is not None:
             raise Robot.connect_error
-        self.host = fci_hostname
+        self.host = self.fci_hostname = fci_hostname
         self.calls: list[tuple[float, str, Any]] = []
         self._rdf: Any = 1.0
         self.q = Robot.initial_q.copy()
@@ -160,7 +226,7 @@ class Robot:
             raise CommandException("libfranka: Move command rejected: command not possible in the current mode")
         self._done.clear()
         fault, self.fault = self.fault, None
-        final = motion.waypoints[-1].target if motion.waypoints else self.q
+        final = motion.waypoints[-1].target.position if getattr(motion, "waypoints", None) else self.q
 
         def finish() -> None:
             if fault is not None:
@@ -170,7 +236,7 @@ class Robot:
                 self.q = np.array(final, dtype=float)
             self._done.set()
 
-        delay = motion.duration() / Robot.time_scale if fault is None else 0.01
+        delay = motion_duration(motion) / Robot.time_scale if fault is None else 0.01
         self._timer = threading.Timer(delay, finish)
         self._timer.daemon = True
         self._timer.start()
@@ -217,11 +283,13 @@ class GripperState:
     max_width: float
     is_grasped: bool
     temperature: float = 30.0
+    time: Duration = field(default_factory=Duration)
 
 
 class Gripper:
     """franky.Gripper: grasps an object ``object_width`` m wide when closing past it."""
 
+    DOUBLE_ONLY = {"instances", "object_width", "host", "calls", "fail"}
     instances: list[Gripper] = []
     object_width: float | None = 0.02
 
@@ -276,7 +344,7 @@ def make_module() -> types.ModuleType:
     Gripper.object_width = 0.02
     mod = types.ModuleType("franky")
     for name, value in list(globals().items()):
-        if isinstance(value, type) and value.__module__ == __name__:
+        if isinstance(value, type) and value.__module__ == __name__ and name != "FrankaException":
             setattr(mod, name, value)
     mod.Exception = FrankaException
     return mod

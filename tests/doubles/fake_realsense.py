@@ -20,6 +20,15 @@ option = types.SimpleNamespace(laser_power="laser_power")
 camera_info = types.SimpleNamespace(serial_number="serial_number")
 frame_metadata_value = types.SimpleNamespace(frame_timestamp="frame_timestamp")
 
+# Names a double offers that the real pyrealsense2 does not: state and fault injection.
+DOUBLE_ONLY = {"State", "STATE", "make_module", "DOUBLE_ONLY", "LASER_RANGE", "Intrinsics"}
+LASER_RANGE = (0.0, 360.0, 30.0, 150.0)  # D4xx laser_power option: min, max, step, default (mW)
+
+
+class _OptionRange:
+    def __init__(self, lo: float, hi: float, step: float, default: float) -> None:
+        self.min, self.max, self.step, self.default = lo, hi, step, default
+
 
 class State:
     """Shared device state and fault injection for one test."""
@@ -33,6 +42,7 @@ class State:
         self.resets = 0
         self.frame_number = 0
         self.metadata = True
+        self.stamp_offset_us = 0  # added to the 32-bit frame_timestamp counter (to place a wrap)
         self.options: dict[str, float] = {}
         self.aligned = 0
         self.enabled: list[tuple[Any, ...]] = []
@@ -50,6 +60,8 @@ class Intrinsics:
 
 
 class config:  # noqa: N801 - pyrealsense2's name
+    DOUBLE_ONLY = {"streams", "device"}
+
     def __init__(self) -> None:
         self.streams: dict[str, tuple[int, int, str, int]] = {}
         self.device: str | None = None
@@ -70,7 +82,16 @@ class _Sensor:
     def supports(self, opt: str) -> bool:
         return opt == option.laser_power
 
+    def is_option_read_only(self, opt: str) -> bool:
+        return False
+
+    def get_option_range(self, opt: str) -> _OptionRange:
+        return _OptionRange(*LASER_RANGE)
+
     def set_option(self, opt: str, value: float) -> None:
+        lo, hi, step, _ = LASER_RANGE
+        if not lo <= value <= hi or abs((value - lo) / step - round((value - lo) / step)) > 1e-6:
+            raise RuntimeError(f"hwmon command 0x80 ( 5 0 0 0 ) failed (response -7= HW not ready): {value}")
         STATE.options[opt] = value
 
 
@@ -86,6 +107,8 @@ class _Device:
 
 
 class _VideoProfile:
+    DOUBLE_ONLY = {"w", "h"}
+
     def __init__(self, w: int, h: int) -> None:
         self.w, self.h = w, h
 
@@ -97,6 +120,8 @@ class _VideoProfile:
 
 
 class _Profile:
+    DOUBLE_ONLY = {"cfg"}
+
     def __init__(self, cfg: config) -> None:
         self.cfg = cfg
 
@@ -109,6 +134,8 @@ class _Profile:
 
 
 class _Frame:
+    DOUBLE_ONLY = {"data", "number", "stamp_ms"}
+
     def __init__(self, data: np.ndarray, number: int, stamp_ms: float) -> None:
         self.data, self.number, self.stamp_ms = data, number, stamp_ms
 
@@ -128,10 +155,12 @@ class _Frame:
         return STATE.metadata and m == frame_metadata_value.frame_timestamp
 
     def get_frame_metadata(self, m: str) -> int:
-        return int(self.stamp_ms * 1000)
+        return (int(round(self.stamp_ms * 1000)) + STATE.stamp_offset_us) % (1 << 32)  # a 32-bit µs counter
 
 
 class _Frameset:
+    DOUBLE_ONLY = {"color", "depth", "aligned"}
+
     def __init__(self, color: _Frame, depth: _Frame, aligned: bool = False) -> None:
         self.color, self.depth, self.aligned = color, depth, aligned
 
@@ -177,7 +206,7 @@ class pipeline:  # noqa: N801
         n = STATE.frame_number
         color = np.full((h, w, 3), n % 256, dtype=np.uint8)
         depth = np.full((h, w), 1000 + n, dtype=np.uint16)
-        stamp = 1.7e9 * 1000 + n * 1000.0 / fps
+        stamp = 1000.0 + n * 1000.0 / fps  # ms since the device started
         return _Frameset(_Frame(color, n, stamp), _Frame(depth, n, stamp))
 
 

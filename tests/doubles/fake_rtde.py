@@ -10,6 +10,7 @@ Signatures follow ur-rtde's Python bindings: ``RTDEControlInterface(hostname)``,
 
 from __future__ import annotations
 
+import datetime
 import time
 import types
 from typing import Any
@@ -47,12 +48,17 @@ class SimUR:
 
 SIMS: dict[str, SimUR] = {}
 
+# Names a double offers that the real ur-rtde does not: the simulated controller and bookkeeping.
+DOUBLE_ONLY = {"SimUR", "SIMS", "sim_for", "make_modules", "DOUBLE_ONLY"}
+
 
 def sim_for(host: str) -> SimUR:
     return SIMS.setdefault(host, SimUR())
 
 
 class RTDEControlInterface:
+    DOUBLE_ONLY = {"sim", "frequency", "period"}
+
     def __init__(self, hostname: str, frequency: float = -1.0, flags: int = 0, ur_cap_port: int = 50002,
                  rt_priority: int = 0) -> None:
         self.sim = sim_for(hostname)
@@ -71,11 +77,12 @@ class RTDEControlInterface:
         self.sim.calls.append(f"servoStop({a})")
         return True
 
-    def initPeriod(self) -> float:  # noqa: N802
-        return time.monotonic()
+    def initPeriod(self) -> datetime.timedelta:  # noqa: N802 - ur-rtde returns a steady-clock timedelta
+        return datetime.timedelta(seconds=time.monotonic())
 
-    def waitPeriod(self, t_start: float) -> None:  # noqa: N802
-        rest = t_start + self.period - time.monotonic()
+    def waitPeriod(self, t_start: datetime.timedelta) -> None:  # noqa: N802
+        assert isinstance(t_start, datetime.timedelta), "waitPeriod takes initPeriod()'s timedelta"
+        rest = t_start.total_seconds() + self.period - time.monotonic()
         if rest > 0:
             time.sleep(rest)
 
@@ -106,6 +113,8 @@ class RTDEControlInterface:
 
 
 class RTDEReceiveInterface:
+    DOUBLE_ONLY = {"sim", "reconnected"}
+
     def __init__(self, hostname: str, frequency: float = -1.0, variables: Any = None, verbose: bool = False,
                  use_upper_range_registers: bool = False, rt_priority: int = 0) -> None:
         self.sim = sim_for(hostname)
@@ -137,6 +146,8 @@ class RTDEReceiveInterface:
 
 
 class DashboardClient:
+    DOUBLE_ONLY = {"sim"}
+
     def __init__(self, hostname: str, port: int = 29999, verbose: bool = False) -> None:
         self.sim = sim_for(hostname)
 

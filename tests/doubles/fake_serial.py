@@ -7,6 +7,9 @@ from collections import deque
 
 from drivers.serial_gripper import check_crc, with_crc
 
+# Names a double offers that the real pyserial does not.
+DOUBLE_ONLY = {"RobotiqSim", "FakePort", "make_module", "DOUBLE_ONLY", "check_crc", "with_crc", "ports"}
+
 
 class SerialException(OSError):
     """Stand-in for ``serial.SerialException``."""
@@ -15,10 +18,15 @@ class SerialException(OSError):
 class RobotiqSim:
     """The gripper's register model: activation, finger motion towards the request, object contact."""
 
-    def __init__(self, slave_id: int = 9, object_at: int | None = None, activation_polls: int = 2) -> None:
+    def __init__(self, slave_id: int = 9, object_at: int | None = None, activation_polls: int = 2,
+                 open_limit: int = 13, closed_limit: int = 226, echo_polls: int = 0) -> None:
         self.slave_id = slave_id
         self.object_at = object_at  # position register where fingers meet an object (None: no object)
         self.activation_polls = activation_polls
+        self.open_limit, self.closed_limit = open_limit, closed_limit  # the fingers' software limits (gPO)
+        self.echo_polls = echo_polls  # status reads after a command before gPR echoes it (old gOBJ meanwhile)
+        self.echo = 0
+        self.echo_wait = 0
         self.action = bytes(6)
         self.position = 0
         self.activating = 0
@@ -41,6 +49,7 @@ class RobotiqSim:
                 self.activating = self.activation_polls
             if not payload[0] & 0x01:
                 self.activated = False
+            self.echo_wait = self.echo_polls
             self.action = payload
             return with_crc(frame[:6])
         if func == 0x04:
@@ -55,8 +64,12 @@ class RobotiqSim:
             self.activating -= 1
             if self.activating <= 0:
                 self.activated = True
+        if self.echo_wait > 0:
+            self.echo_wait -= 1
+            return
+        self.echo = self.action[3]
         if self.activated and self.action[0] & 0x08:
-            target = self.action[3]
+            target = min(max(self.action[3], self.open_limit), self.closed_limit)
             if self.object_at is not None and target > self.object_at >= self.position:
                 target = self.object_at
             self.position = target
@@ -68,14 +81,16 @@ class RobotiqSim:
         gto = (self.action[0] >> 3) & 1
         obj = 0
         if self.activated and gto:
-            contact = self.object_at is not None and self.action[3] > self.object_at == self.position
+            contact = self.object_at is not None and self.echo > self.object_at == self.position
             obj = 2 if contact else 3
         status = act | (gto << 3) | (sta << 4) | (obj << 6)
-        return bytes((status, 0, 0, self.action[3], self.position, 10))
+        return bytes((status, 0, 0, self.echo, self.position, 10))
 
 
 class FakePort:
     """A serial port whose peer is a :class:`RobotiqSim`; faults can be queued per request."""
+
+    DOUBLE_ONLY = {"sim", "kwargs", "rx", "faults", "sent"}
 
     def __init__(self, sim: RobotiqSim, **kwargs: object) -> None:
         self.sim = sim
