@@ -2,9 +2,11 @@
 
 Channels (Foxglove schemas where one fits, so a file opens in Foxglove):
 
-- ``/cam/<id>/color``  foxglove.RawImage rgb8;  ``/cam/<id>/depth``  foxglove.RawImage 16UC1 (mm)
+- ``/cam/<id>/color``  foxglove.CompressedVideo h264 (default), CompressedImage jpeg or RawImage rgb8
+- ``/cam/<id>/depth``  foxglove.CompressedImage 16-bit png (default) or RawImage 16UC1, mm, lossless
+  (codecs and settings: tdrecord.codecs, ``output.color`` / ``output.depth`` of the config)
 - ``/cam/<id>/calibration``  foxglove.CameraCalibration (frame ``cam``)
-- ``/cam/<id>/frame_info``  JSON {frame_number, device_stamp, host_stamp}
+- ``/cam/<id>/frame_info``  JSON {frame_number, device_stamp, host_stamp, color_keyframe}
 - ``/arms/state``  JSON (see orchestrator.wire);  ``/tf``  foxglove.FrameTransforms (world -> cam, TCPs)
 - ``/keypoints``  JSON (trackdeform.Keypoints/1, exact arrays);  ``/keypoints/scene``  foxglove.SceneUpdate
 - ``/ground_truth/keypoints``  JSON (mock mode)
@@ -19,6 +21,7 @@ import json
 import logging
 import os
 from collections.abc import Iterable
+from concurrent.futures import Executor
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +29,9 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from drivers.types import RGBDFrame
+from orchestrator.config import ColorOutputConfig, DepthOutputConfig
 from orchestrator.fsutil import fsync_dir
+from tdrecord.codecs import SCHEMA_COMPRESSED, SCHEMA_RAW, SCHEMA_VIDEO, ColorEncoder, DepthEncoder, EncodedImage
 
 log = logging.getLogger(__name__)
 
@@ -47,10 +52,18 @@ def _quats_xyzw(R: np.ndarray) -> np.ndarray:
 
 
 class EpisodeWriter:
-    """Writes one episode file; call ``close()`` to finish it (``abort()`` leaves ``.active``)."""
+    """Writes one episode file; call ``close()`` to finish it (``abort()`` leaves ``.active``).
 
-    def __init__(self, path: Path, camera_id: str, compression: str = "zstd") -> None:
+    Colour and depth are encoded as ``color`` / ``depth`` say (defaults: H.264 and 16-bit PNG); with an
+    ``executor`` depth is encoded on it while colour is encoded on the calling thread.
+    """
+
+    def __init__(self, path: Path, camera_id: str, compression: str = "zstd",
+                 color: ColorOutputConfig | None = None, depth: DepthOutputConfig | None = None,
+                 executor: Executor | None = None, fps: float = 30.0) -> None:
         from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+        from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+        from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
         from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
         from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
         from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
@@ -72,6 +85,16 @@ class EpisodeWriter:
         self.first_frame: int | None = None
         self.last_frame: int | None = None
         self.closed = False
+        self.color_config = color or ColorOutputConfig()
+        self.depth_config = depth or DepthOutputConfig()
+        c = self.color_config
+        self._color_enc = ColorEncoder(c.codec, crf=c.crf, preset=c.preset, gop=c.gop, jpeg_quality=c.jpeg_quality,
+                                       fps=fps)
+        self._depth_enc = DepthEncoder(self.depth_config.codec)
+        self._executor = executor
+        self._image_cls = {SCHEMA_RAW: RawImage, SCHEMA_COMPRESSED: CompressedImage, SCHEMA_VIDEO: CompressedVideo}
+        color_cls = {"h264": CompressedVideo, "jpeg": CompressedImage, "raw": RawImage}[c.codec]
+        depth_cls = {"png": CompressedImage, "raw": RawImage}[self.depth_config.codec]
 
         def proto(cls: Any) -> int:
             fds = build_file_descriptor_set(cls)
@@ -80,12 +103,14 @@ class EpisodeWriter:
         def js(name: str, schema: dict[str, Any]) -> int:
             return self._w.register_schema(name, "jsonschema", json.dumps(schema).encode())
 
-        raw, calib, tf, scene = proto(RawImage), proto(CameraCalibration), proto(FrameTransforms), proto(SceneUpdate)
+        calib, tf, scene = proto(CameraCalibration), proto(FrameTransforms), proto(SceneUpdate)
+        color_sid = proto(color_cls)
+        depth_sid = color_sid if depth_cls is color_cls else proto(depth_cls)
         obj = {"type": "object"}
         cam = f"/cam/{camera_id}"
         for topic, sid, enc in [
-            (f"{cam}/color", raw, "protobuf"),
-            (f"{cam}/depth", raw, "protobuf"),
+            (f"{cam}/color", color_sid, "protobuf"),
+            (f"{cam}/depth", depth_sid, "protobuf"),
             (f"{cam}/calibration", calib, "protobuf"),
             (f"{cam}/frame_info", js("trackdeform.FrameInfo", obj), "json"),
             ("/arms/state", js("trackdeform.ArmState", obj), "json"),
@@ -107,6 +132,15 @@ class EpisodeWriter:
     def _add_json(self, topic: str, obj: dict[str, Any], t: float) -> None:
         self._add(topic, json.dumps(obj, separators=(",", ":")).encode(), t)
 
+    def _image_message(self, img: EncodedImage, ts: Any) -> bytes:
+        cls = self._image_cls[img.schema]
+        if img.schema == SCHEMA_RAW:
+            msg = cls(timestamp=ts, frame_id="cam", width=img.width, height=img.height, encoding=img.fmt,
+                      step=img.step, data=img.data)
+        else:
+            msg = cls(timestamp=ts, frame_id="cam", format=img.fmt, data=img.data)
+        return msg.SerializeToString()
+
     def write_frame(self, frame: RGBDFrame, T_world_cam: np.ndarray) -> None:
         """Colour, depth, frame info (+ calibration and camera pose on the first frame, ground truth if any)."""
         from google.protobuf.timestamp_pb2 import Timestamp
@@ -114,26 +148,24 @@ class EpisodeWriter:
         t = frame.device_stamp
         ts = Timestamp()
         ts.FromNanoseconds(_ns(t))
-        h, w = frame.depth.shape
         cam = f"/cam/{self.camera_id}"
         if self.n_frames == 0:
             self.write_calibration(frame, T_world_cam)
-        color = self._RawImage(
-            timestamp=ts, frame_id="cam", width=w, height=h, encoding="rgb8", step=w * 3,
-            data=np.ascontiguousarray(frame.color).tobytes(),
-        )
-        self._add(f"{cam}/color", color.SerializeToString(), t, frame.host_stamp)
         depth_mm = frame.depth if abs(frame.depth_scale - 0.001) < 1e-9 else np.clip(
             np.round(frame.depth.astype(np.float64) * frame.depth_scale * 1000.0), 0, 65535
         ).astype(np.uint16)
-        depth = self._RawImage(
-            timestamp=ts, frame_id="cam", width=w, height=h, encoding="16UC1", step=w * 2,
-            data=np.ascontiguousarray(depth_mm, dtype="<u2").tobytes(),
-        )
-        self._add(f"{cam}/depth", depth.SerializeToString(), t, frame.host_stamp)
+        depth_mm = np.asarray(depth_mm, dtype=np.uint16)
+        pending = self._executor.submit(self._depth_enc.encode, depth_mm) if self._executor is not None else None
+        try:
+            color = self._color_enc.encode(frame.color)
+        finally:
+            depth = pending.result() if pending is not None else self._depth_enc.encode(depth_mm)
+        self._add(f"{cam}/color", self._image_message(color, ts), t, frame.host_stamp)
+        self._add(f"{cam}/depth", self._image_message(depth, ts), t, frame.host_stamp)
         self._add_json(
             f"{cam}/frame_info",
-            {"frame_number": frame.frame_number, "device_stamp": frame.device_stamp, "host_stamp": frame.host_stamp},
+            {"frame_number": frame.frame_number, "device_stamp": frame.device_stamp, "host_stamp": frame.host_stamp,
+             "color_keyframe": color.keyframe},
             t,
         )
         if frame.ground_truth is not None:
@@ -209,8 +241,10 @@ class EpisodeWriter:
         """Write metadata, finish, fsync and rename to the final name; returns it."""
         if self.closed:
             return self.path
+        self._color_enc.close()
         meta = dict(metadata)
-        meta.update(n_frames=self.n_frames, first_frame=self.first_frame, last_frame=self.last_frame)
+        meta.update(n_frames=self.n_frames, first_frame=self.first_frame, last_frame=self.last_frame,
+                    image_encoding={"color": self.color_config.model_dump(), "depth": self.depth_config.model_dump()})
         self._w.add_metadata("episode", {k: json.dumps(v) for k, v in meta.items()})
         self._w.finish()
         self._file.flush()
@@ -224,6 +258,7 @@ class EpisodeWriter:
     def abort(self) -> None:
         """Stop writing without finishing; the ``.active`` file stays for :func:`recover_active`."""
         if not self.closed:
+            self._color_enc.close()
             try:
                 self._file.flush()
                 os.fsync(self._file.fileno())
@@ -362,15 +397,26 @@ class Recorder:
 
     The queue is bounded and ``put`` blocks when it is full: frames are never dropped here.
     A closed episode stays open for ``close_grace`` more frames so late keypoints of its last
-    frames (the tracker runs behind the camera) still land in it.
+    frames (the tracker runs behind the camera) still land in it. Images are encoded here, off the
+    capture thread: colour on this thread, depth on one helper thread at the same time.
+    ``cpu_seconds`` is the CPU time these two threads have used (encoding and writing).
     """
 
-    def __init__(self, camera_id: str, compression: str = "zstd", maxsize: int = 60, close_grace: int = 15) -> None:
+    def __init__(self, camera_id: str, compression: str = "zstd", maxsize: int = 60, close_grace: int = 15,
+                 color: ColorOutputConfig | None = None, depth: DepthOutputConfig | None = None) -> None:
         import queue
         import threading
+        from concurrent.futures import ThreadPoolExecutor
 
         self.camera_id = camera_id
         self.compression = compression
+        self.color = color or ColorOutputConfig()
+        self.depth = depth or DepthOutputConfig()
+        self.cpu_seconds = 0.0
+        self.frames_written = 0
+        self._cpu_lock = threading.Lock()
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="recorder-depth")
+        self._executor = _CpuTimedExecutor(self._pool, self._add_cpu)
         self.close_grace = close_grace
         self.finished: list[Path] = []
         self.errors: list[str] = []
@@ -410,6 +456,12 @@ class Recorder:
         self._thread.join(timeout)
         if self._thread.is_alive():
             self.errors.append(f"recorder did not finish within {timeout} s")
+        else:
+            self._pool.shutdown(wait=True)
+
+    def _add_cpu(self, seconds: float) -> None:
+        with self._cpu_lock:
+            self.cpu_seconds += seconds
 
     # ------------------------------------------------------------ writer thread
     def _finish(self, writer: EpisodeWriter, meta: dict[str, Any]) -> None:
@@ -440,18 +492,23 @@ class Recorder:
         self.keypoints_unmatched += 1
 
     def _run(self) -> None:
+        import time
+
         while True:
             item = self._q.get()
             op = item[0]
+            c0 = time.thread_time()
             try:
                 if op == "open":
                     if self._current is not None:  # defensive: never lose the previous one
                         self._finish(self._current, {**self._current_meta, "complete": False})
-                    self._current = EpisodeWriter(item[1], self.camera_id, self.compression)
+                    self._current = EpisodeWriter(item[1], self.camera_id, self.compression, self.color, self.depth,
+                                                  self._executor)
                     self._current_meta = dict(item[2])
                 elif op == "frame":
                     if self._current is not None:
                         self._current.write_frame(item[1], item[2])
+                        self.frames_written += 1
                     self._tick_closing()
                 elif op == "arm":
                     if self._current is not None:
@@ -477,3 +534,25 @@ class Recorder:
             except Exception as e:  # keep the thread alive; the session reads .errors
                 self.errors.append(f"recorder: {op}: {type(e).__name__}: {e}")
                 log.exception("recorder op %s failed", op)
+            finally:
+                self._add_cpu(time.thread_time() - c0)
+
+
+class _CpuTimedExecutor(Executor):
+    """Submits to ``inner`` and reports each task's CPU time (its thread's) to ``report``."""
+
+    def __init__(self, inner: Executor, report: Any) -> None:
+        self._inner, self._report = inner, report
+
+    def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> Any:  # noqa: ANN401 - Executor's signature
+        """Run ``fn(*args, **kwargs)`` on the inner executor, timing its thread's CPU."""
+        import time
+
+        def timed() -> Any:  # noqa: ANN401
+            c0 = time.thread_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self._report(time.thread_time() - c0)
+
+        return self._inner.submit(timed)

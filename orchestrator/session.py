@@ -293,7 +293,8 @@ class Session:
                 self.progress.message(f"found an unfinished episode from an earlier run: {path.name}: {outcome}")
             self._episode_index = self._next_episode_index()
             cam = self.config.station.camera
-            self._recorder = Recorder(cam.id, self.config.output.compression)
+            out = self.config.output
+            self._recorder = Recorder(cam.id, out.compression, color=out.color, depth=out.depth)
             if self.bus is not None:
                 self._frame_key = self.bus.key("cam", cam.id, "frame")
                 self._state_key = self.bus.key("arms", "state")

@@ -11,6 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from drivers.types import GroundTruth, RGBDFrame
+from orchestrator.config import ColorOutputConfig
 from orchestrator.datasets import (
     DatasetError,
     FrameSource,
@@ -28,6 +29,8 @@ from orchestrator.datasets import (
 )
 from orchestrator.recorder import EpisodeWriter, recover_active
 from tests.conftest import make_frame
+
+RAW_COLOR = ColorOutputConfig(codec="raw")
 
 W, H = 64, 48
 
@@ -77,7 +80,7 @@ def _metadata() -> dict:
 
 def _episode(path: Path, frames: range, states: bool = True, gt: bool = False, close: bool = True) -> EpisodeWriter:
     """Frames ``frames`` at 30 Hz with arm states every 7 ms in between."""
-    w = EpisodeWriter(path, "cam0")
+    w = EpisodeWriter(path, "cam0", color=RAW_COLOR)  # random colour: exact
     for n in frames:
         if states:
             for t in np.arange(n / 30 - 1 / 30, n / 30, 0.007):
