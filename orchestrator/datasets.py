@@ -31,6 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from drivers.types import CameraIntrinsics, GroundTruth, RGBDFrame
 from orchestrator.recorder import ACTIVE_SUFFIX
+from tdrecord.channels import edges_from_json, points_from_json
 from tdrecord.codecs import SCHEMA_RAW, SCHEMA_VIDEO, CodecError, ImageDecoder
 
 log = logging.getLogger(__name__)
@@ -250,13 +251,12 @@ def _camera_ids(topics: Iterable[str]) -> list[str]:
 
 
 def _gt_from_json(d: dict[str, Any]) -> GroundTruth:
-    kp = np.asarray(d.get("keypoints", []), dtype=np.float64).reshape(-1, 3)
-    centre = d.get("centreline")
+    kp = points_from_json(d.get("keypoints", []))
     return GroundTruth(
         keypoints=kp,
-        edges=np.asarray(d.get("edges", []), dtype=np.int64).reshape(-1, 2),
-        # episodes do not store the dense centreline: empty unless the message carries one
-        centreline=np.asarray(centre if centre is not None else [], dtype=np.float64).reshape(-1, 3),
+        edges=edges_from_json(d.get("edges", [])),
+        # episodes store a subsampled centreline (older files none): empty unless the message carries one
+        centreline=points_from_json(d.get("centreline")),
         radius=float(d.get("radius", 0.0)),
         anchors=np.asarray(d.get("anchors", []), dtype=np.int64),
         category=str(d.get("category", "")),

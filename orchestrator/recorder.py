@@ -7,6 +7,7 @@ Channels (Foxglove schemas where one fits, so a file opens in Foxglove):
   (codecs and settings: tdrecord.codecs, ``output.color`` / ``output.depth`` of the config)
 - ``/cam/<id>/calibration``  foxglove.CameraCalibration (frame ``cam``)
 - ``/cam/<id>/frame_info``  JSON {frame_number, device_stamp, host_stamp, color_keyframe}
+  (every JSON channel has a JSON Schema with its properties: tdrecord.channels)
 - ``/arms/state``  JSON (see orchestrator.wire);  ``/tf``  foxglove.FrameTransforms (world -> cam, TCPs)
 - ``/keypoints``  JSON (trackdeform.Keypoints/1, exact arrays);  ``/keypoints/scene``  foxglove.SceneUpdate
 - ``/ground_truth/keypoints``  JSON (mock mode)
@@ -31,6 +32,7 @@ from mcap.writer import CompressionType, Writer
 from drivers.types import RGBDFrame
 from orchestrator.config import ColorOutputConfig, DepthOutputConfig
 from orchestrator.fsutil import fsync_dir
+from tdrecord.channels import SCHEMAS, edges_to_json, keypoints_record, points_to_json
 from tdrecord.codecs import SCHEMA_COMPRESSED, SCHEMA_RAW, SCHEMA_VIDEO, ColorEncoder, DepthEncoder, EncodedImage
 
 log = logging.getLogger(__name__)
@@ -106,18 +108,17 @@ class EpisodeWriter:
         calib, tf, scene = proto(CameraCalibration), proto(FrameTransforms), proto(SceneUpdate)
         color_sid = proto(color_cls)
         depth_sid = color_sid if depth_cls is color_cls else proto(depth_cls)
-        obj = {"type": "object"}
         cam = f"/cam/{camera_id}"
         for topic, sid, enc in [
             (f"{cam}/color", color_sid, "protobuf"),
             (f"{cam}/depth", depth_sid, "protobuf"),
             (f"{cam}/calibration", calib, "protobuf"),
-            (f"{cam}/frame_info", js("trackdeform.FrameInfo", obj), "json"),
-            ("/arms/state", js("trackdeform.ArmState", obj), "json"),
+            (f"{cam}/frame_info", js("trackdeform.FrameInfo", SCHEMAS["trackdeform.FrameInfo"]), "json"),
+            ("/arms/state", js("trackdeform.ArmState", SCHEMAS["trackdeform.ArmState"]), "json"),
             ("/tf", tf, "protobuf"),
-            ("/keypoints", js("trackdeform.Keypoints", obj), "json"),
+            ("/keypoints", js("trackdeform.Keypoints", SCHEMAS["trackdeform.Keypoints"]), "json"),
             ("/keypoints/scene", scene, "protobuf"),
-            ("/ground_truth/keypoints", js("trackdeform.GroundTruth", obj), "json"),
+            ("/ground_truth/keypoints", js("trackdeform.GroundTruth", SCHEMAS["trackdeform.GroundTruth"]), "json"),
         ]:
             self._channels[topic] = self._w.register_channel(topic, enc, sid)
             self._seq[topic] = 0
@@ -130,7 +131,11 @@ class EpisodeWriter:
         self._w.add_message(self._channels[topic], _ns(t), data, _ns(t if publish is None else publish), seq)
 
     def _add_json(self, topic: str, obj: dict[str, Any], t: float) -> None:
-        self._add(topic, json.dumps(obj, separators=(",", ":")).encode(), t)
+        try:
+            text = json.dumps(obj, separators=(",", ":"), allow_nan=False)
+        except ValueError:  # NaN / inf are not JSON (Foxglove's JSON.parse refuses them): null instead
+            text = json.dumps(_finite_or_null(obj), separators=(",", ":"), allow_nan=False)
+        self._add(topic, text.encode(), t)
 
     def _image_message(self, img: EncodedImage, ts: Any) -> bytes:
         cls = self._image_cls[img.schema]
@@ -172,9 +177,9 @@ class EpisodeWriter:
             gt = frame.ground_truth
             self._add_json(
                 "/ground_truth/keypoints",
-                {"frame_number": frame.frame_number, "keypoints": np.round(gt.keypoints, 6).tolist(),
-                 "edges": gt.edges.tolist(), "anchors": gt.anchors.tolist(), "radius": gt.radius,
-                 "category": gt.category, "centreline": _subsample(gt.centreline, 400)},
+                {"frame_number": frame.frame_number, "keypoints": points_to_json(gt.keypoints),
+                 "edges": edges_to_json(gt.edges), "anchors": gt.anchors.tolist(), "radius": gt.radius,
+                 "category": gt.category, "centreline": points_to_json(_subsample(gt.centreline, 400), 4)},
                 t,
             )
         self.n_frames += 1
@@ -232,8 +237,8 @@ class EpisodeWriter:
             self.write_transforms(t, tcp_poses)
 
     def write_keypoints(self, msg: dict[str, Any], t: float) -> None:
-        """Tracked keypoints (exact JSON) and a SceneUpdate with spheres and edge lines."""
-        self._add_json("/keypoints", msg, t)
+        """Tracked keypoints (JSON, points as {x, y, z}) and a SceneUpdate with spheres and edge lines."""
+        self._add_json("/keypoints", keypoints_record(msg), t)
         self._add("/keypoints/scene", _scene_update(self._Scene, msg, t).SerializeToString(), t)
 
     # ------------------------------------------------------------------ closing
@@ -267,6 +272,17 @@ class EpisodeWriter:
                 self.closed = True
 
 
+def _finite_or_null(obj: Any) -> Any:  # noqa: ANN401 - any JSON value
+    """``obj`` with every non-finite float replaced by None (JSON null)."""
+    if isinstance(obj, float):
+        return obj if np.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite_or_null(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite_or_null(v) for v in obj]
+    return obj
+
+
 def _subsample(points: np.ndarray, n: int) -> list[list[float]]:
     """At most ``n`` evenly picked rows of points (M, 3), rounded to 0.1 mm, as lists."""
     idx = np.unique(np.linspace(0, len(points) - 1, min(n, len(points))).round().astype(int)) if len(points) else []
@@ -286,6 +302,11 @@ def _scene_update(SceneUpdate: Any, msg: dict[str, Any], t: float) -> Any:
     ts = Timestamp()
     ts.FromNanoseconds(_ns(t))
     kp = msg.get("keypoints", [])
+    if not kp:  # nothing tracked (lost): clear the previous keypoints instead of an empty entity
+        from foxglove_schemas_protobuf.SceneEntityDeletion_pb2 import SceneEntityDeletion
+
+        return SceneUpdate(deletions=[SceneEntityDeletion(timestamp=ts, type=SceneEntityDeletion.MATCHING_ID,
+                                                          id="keypoints")])
     ent = SceneEntity(timestamp=ts, frame_id="world", id="keypoints")
     for p in kp:
         ent.spheres.append(
@@ -299,7 +320,8 @@ def _scene_update(SceneUpdate: Any, msg: dict[str, Any], t: float) -> Any:
     for i, j in msg.get("edges", []):
         line.points.append(Point3(x=kp[i][0], y=kp[i][1], z=kp[i][2]))
         line.points.append(Point3(x=kp[j][0], y=kp[j][1], z=kp[j][2]))
-    ent.lines.append(line)
+    if line.points:  # Foxglove warns about a line without points
+        ent.lines.append(line)
     return SceneUpdate(entities=[ent])
 
 
