@@ -138,11 +138,31 @@ class BusConfig(StrictModel):
         return "/".join([self.prefix.strip("/"), station, *parts])
 
 
+class ColorOutputConfig(StrictModel):
+    """How colour is stored: H.264 (foxglove.CompressedVideo), JPEG or raw (see tdrecord.codecs)."""
+
+    codec: Literal["h264", "jpeg", "raw"] = Field("h264", description="h264 (default), jpeg (fallback) or raw rgb8")
+    crf: int = Field(18, ge=0, le=51, description="H.264 constant rate factor: lower is better and larger")
+    preset: Literal["ultrafast", "superfast", "veryfast", "faster", "fast", "medium"] = Field(
+        "ultrafast", description="libx264 speed preset (slower presets: smaller files, more CPU)"
+    )
+    gop: int = Field(30, ge=1, le=9000, description="frames between H.264 keyframes; every episode starts with one")
+    jpeg_quality: int = Field(90, ge=1, le=100, description="JPEG quality (codec jpeg)")
+
+
+class DepthOutputConfig(StrictModel):
+    """How depth is stored, always lossless: 16-bit PNG (foxglove.CompressedImage) or raw 16UC1."""
+
+    codec: Literal["png", "raw"] = Field("png", description="png (default) or raw 16UC1 (both bit-exact)")
+
+
 class OutputConfig(StrictModel):
     """Where and how episodes are written."""
 
     directory: Path = Field(Path("runs"), description="episodes go to <directory>/<session>/")
-    compression: Literal["zstd", "lz4", "none"] = "zstd"
+    compression: Literal["zstd", "lz4", "none"] = Field("zstd", description="MCAP chunk compression")
+    color: ColorOutputConfig = Field(default_factory=ColorOutputConfig)
+    depth: DepthOutputConfig = Field(default_factory=DepthOutputConfig)
     min_free_gb: float = Field(2.0, ge=0.0, description="stop cleanly below this free disk space, GiB")
 
 

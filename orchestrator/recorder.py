@@ -2,9 +2,12 @@
 
 Channels (Foxglove schemas where one fits, so a file opens in Foxglove):
 
-- ``/cam/<id>/color``  foxglove.RawImage rgb8;  ``/cam/<id>/depth``  foxglove.RawImage 16UC1 (mm)
+- ``/cam/<id>/color``  foxglove.CompressedVideo h264 (default), CompressedImage jpeg or RawImage rgb8
+- ``/cam/<id>/depth``  foxglove.CompressedImage 16-bit png (default) or RawImage 16UC1, mm, lossless
+  (codecs and settings: tdrecord.codecs, ``output.color`` / ``output.depth`` of the config)
 - ``/cam/<id>/calibration``  foxglove.CameraCalibration (frame ``cam``)
-- ``/cam/<id>/frame_info``  JSON {frame_number, device_stamp, host_stamp}
+- ``/cam/<id>/frame_info``  JSON {frame_number, device_stamp, host_stamp, color_keyframe}
+  (every JSON channel has a JSON Schema with its properties: tdrecord.channels)
 - ``/arms/state``  JSON (see tdcommon.wire);  ``/tf``  foxglove.FrameTransforms (world -> cam, TCPs)
 - ``/keypoints``  JSON (trackdeform.Keypoints/1, exact arrays);  ``/keypoints/scene``  foxglove.SceneUpdate
 - ``/ground_truth/keypoints``  JSON (mock mode)
@@ -18,15 +21,19 @@ from __future__ import annotations
 import json
 import logging
 import os
+from concurrent.futures import Executor
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
+from orchestrator.config import ColorOutputConfig, DepthOutputConfig
 from orchestrator.fsutil import fsync_dir
 from tdcommon.types import RGBDFrame
 from tdcommon.wire import ground_truth_to_json
+from tdrecord.channels import SCHEMAS, keypoints_record
+from tdrecord.codecs import SCHEMA_COMPRESSED, SCHEMA_RAW, SCHEMA_VIDEO, ColorEncoder, DepthEncoder, EncodedImage
 from tdrecord.episodes import ACTIVE_SUFFIX
 
 log = logging.getLogger(__name__)
@@ -47,10 +54,18 @@ def _quats_xyzw(R: np.ndarray) -> np.ndarray:
 
 
 class EpisodeWriter:
-    """Writes one episode file; call ``close()`` to finish it (``abort()`` leaves ``.active``)."""
+    """Writes one episode file; call ``close()`` to finish it (``abort()`` leaves ``.active``).
 
-    def __init__(self, path: Path, camera_id: str, compression: str = "zstd") -> None:
+    Colour and depth are encoded as ``color`` / ``depth`` say (defaults: H.264 and 16-bit PNG); with an
+    ``executor`` depth is encoded on it while colour is encoded on the calling thread.
+    """
+
+    def __init__(self, path: Path, camera_id: str, compression: str = "zstd",
+                 color: ColorOutputConfig | None = None, depth: DepthOutputConfig | None = None,
+                 executor: Executor | None = None, fps: float = 30.0) -> None:
         from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+        from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+        from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
         from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
         from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
         from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
@@ -72,6 +87,16 @@ class EpisodeWriter:
         self.first_frame: int | None = None
         self.last_frame: int | None = None
         self.closed = False
+        self.color_config = color or ColorOutputConfig()
+        self.depth_config = depth or DepthOutputConfig()
+        c = self.color_config
+        self._color_enc = ColorEncoder(c.codec, crf=c.crf, preset=c.preset, gop=c.gop, jpeg_quality=c.jpeg_quality,
+                                       fps=fps)
+        self._depth_enc = DepthEncoder(self.depth_config.codec)
+        self._executor = executor
+        self._image_cls = {SCHEMA_RAW: RawImage, SCHEMA_COMPRESSED: CompressedImage, SCHEMA_VIDEO: CompressedVideo}
+        color_cls = {"h264": CompressedVideo, "jpeg": CompressedImage, "raw": RawImage}[c.codec]
+        depth_cls = {"png": CompressedImage, "raw": RawImage}[self.depth_config.codec]
 
         def proto(cls: Any) -> int:
             fds = build_file_descriptor_set(cls)
@@ -80,19 +105,20 @@ class EpisodeWriter:
         def js(name: str, schema: dict[str, Any]) -> int:
             return self._w.register_schema(name, "jsonschema", json.dumps(schema).encode())
 
-        raw, calib, tf, scene = proto(RawImage), proto(CameraCalibration), proto(FrameTransforms), proto(SceneUpdate)
-        obj = {"type": "object"}
+        calib, tf, scene = proto(CameraCalibration), proto(FrameTransforms), proto(SceneUpdate)
+        color_sid = proto(color_cls)
+        depth_sid = color_sid if depth_cls is color_cls else proto(depth_cls)
         cam = f"/cam/{camera_id}"
         for topic, sid, enc in [
-            (f"{cam}/color", raw, "protobuf"),
-            (f"{cam}/depth", raw, "protobuf"),
+            (f"{cam}/color", color_sid, "protobuf"),
+            (f"{cam}/depth", depth_sid, "protobuf"),
             (f"{cam}/calibration", calib, "protobuf"),
-            (f"{cam}/frame_info", js("trackdeform.FrameInfo", obj), "json"),
-            ("/arms/state", js("trackdeform.ArmState", obj), "json"),
+            (f"{cam}/frame_info", js("trackdeform.FrameInfo", SCHEMAS["trackdeform.FrameInfo"]), "json"),
+            ("/arms/state", js("trackdeform.ArmState", SCHEMAS["trackdeform.ArmState"]), "json"),
             ("/tf", tf, "protobuf"),
-            ("/keypoints", js("trackdeform.Keypoints", obj), "json"),
+            ("/keypoints", js("trackdeform.Keypoints", SCHEMAS["trackdeform.Keypoints"]), "json"),
             ("/keypoints/scene", scene, "protobuf"),
-            ("/ground_truth/keypoints", js("trackdeform.GroundTruth", obj), "json"),
+            ("/ground_truth/keypoints", js("trackdeform.GroundTruth", SCHEMAS["trackdeform.GroundTruth"]), "json"),
         ]:
             self._channels[topic] = self._w.register_channel(topic, enc, sid)
             self._seq[topic] = 0
@@ -105,7 +131,20 @@ class EpisodeWriter:
         self._w.add_message(self._channels[topic], _ns(t), data, _ns(t if publish is None else publish), seq)
 
     def _add_json(self, topic: str, obj: dict[str, Any], t: float) -> None:
-        self._add(topic, json.dumps(obj, separators=(",", ":")).encode(), t)
+        try:
+            text = json.dumps(obj, separators=(",", ":"), allow_nan=False)
+        except ValueError:  # NaN / inf are not JSON (Foxglove's JSON.parse refuses them): null instead
+            text = json.dumps(_finite_or_null(obj), separators=(",", ":"), allow_nan=False)
+        self._add(topic, text.encode(), t)
+
+    def _image_message(self, img: EncodedImage, ts: Any) -> bytes:
+        cls = self._image_cls[img.schema]
+        if img.schema == SCHEMA_RAW:
+            msg = cls(timestamp=ts, frame_id="cam", width=img.width, height=img.height, encoding=img.fmt,
+                      step=img.step, data=img.data)
+        else:
+            msg = cls(timestamp=ts, frame_id="cam", format=img.fmt, data=img.data)
+        return msg.SerializeToString()
 
     def write_frame(self, frame: RGBDFrame, T_world_cam: np.ndarray) -> None:
         """Colour, depth, frame info (+ calibration and camera pose on the first frame, ground truth if any)."""
@@ -114,24 +153,21 @@ class EpisodeWriter:
         t = frame.device_stamp
         ts = Timestamp()
         ts.FromNanoseconds(_ns(t))
-        h, w = frame.depth.shape
         cam = f"/cam/{self.camera_id}"
         if self.n_frames == 0:
             self.write_calibration(frame, T_world_cam)
-        color = self._RawImage(
-            timestamp=ts, frame_id="cam", width=w, height=h, encoding="rgb8", step=w * 3,
-            data=np.ascontiguousarray(frame.color).tobytes(),
-        )
-        self._add(f"{cam}/color", color.SerializeToString(), t, frame.host_stamp)
-        depth_mm = frame.depth_mm()
-        depth = self._RawImage(
-            timestamp=ts, frame_id="cam", width=w, height=h, encoding="16UC1", step=w * 2,
-            data=np.ascontiguousarray(depth_mm).tobytes(),
-        )
-        self._add(f"{cam}/depth", depth.SerializeToString(), t, frame.host_stamp)
+        depth_mm = np.asarray(frame.depth_mm(), dtype=np.uint16)
+        pending = self._executor.submit(self._depth_enc.encode, depth_mm) if self._executor is not None else None
+        try:
+            color = self._color_enc.encode(frame.color)
+        finally:
+            depth = pending.result() if pending is not None else self._depth_enc.encode(depth_mm)
+        self._add(f"{cam}/color", self._image_message(color, ts), t, frame.host_stamp)
+        self._add(f"{cam}/depth", self._image_message(depth, ts), t, frame.host_stamp)
         self._add_json(
             f"{cam}/frame_info",
-            {"frame_number": frame.frame_number, "device_stamp": frame.device_stamp, "host_stamp": frame.host_stamp},
+            {"frame_number": frame.frame_number, "device_stamp": frame.device_stamp, "host_stamp": frame.host_stamp,
+             "color_keyframe": color.keyframe},
             t,
         )
         if frame.ground_truth is not None:
@@ -196,8 +232,8 @@ class EpisodeWriter:
             self.write_transforms(t, tcp_poses)
 
     def write_keypoints(self, msg: dict[str, Any], t: float) -> None:
-        """Tracked keypoints (exact JSON) and a SceneUpdate with spheres and edge lines."""
-        self._add_json("/keypoints", msg, t)
+        """Tracked keypoints (JSON, points as {x, y, z}) and a SceneUpdate with spheres and edge lines."""
+        self._add_json("/keypoints", keypoints_record(msg), t)
         self._add("/keypoints/scene", _scene_update(self._Scene, msg, t).SerializeToString(), t)
 
     # ------------------------------------------------------------------ closing
@@ -205,8 +241,10 @@ class EpisodeWriter:
         """Write metadata, finish, fsync and rename to the final name; returns it."""
         if self.closed:
             return self.path
+        self._color_enc.close()
         meta = dict(metadata)
-        meta.update(n_frames=self.n_frames, first_frame=self.first_frame, last_frame=self.last_frame)
+        meta.update(n_frames=self.n_frames, first_frame=self.first_frame, last_frame=self.last_frame,
+                    image_encoding={"color": self.color_config.model_dump(), "depth": self.depth_config.model_dump()})
         self._w.add_metadata("episode", {k: json.dumps(v) for k, v in meta.items()})
         self._w.finish()
         self._file.flush()
@@ -220,12 +258,24 @@ class EpisodeWriter:
     def abort(self) -> None:
         """Stop writing without finishing; the ``.active`` file stays for :func:`recover_active`."""
         if not self.closed:
+            self._color_enc.close()
             try:
                 self._file.flush()
                 os.fsync(self._file.fileno())
             finally:
                 self._file.close()
                 self.closed = True
+
+
+def _finite_or_null(obj: Any) -> Any:  # noqa: ANN401 - any JSON value
+    """``obj`` with every non-finite float replaced by None (JSON null)."""
+    if isinstance(obj, float):
+        return obj if np.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite_or_null(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite_or_null(v) for v in obj]
+    return obj
 
 
 def _scene_update(SceneUpdate: Any, msg: dict[str, Any], t: float) -> Any:
@@ -241,6 +291,11 @@ def _scene_update(SceneUpdate: Any, msg: dict[str, Any], t: float) -> Any:
     ts = Timestamp()
     ts.FromNanoseconds(_ns(t))
     kp = msg.get("keypoints", [])
+    if not kp:  # nothing tracked (lost): clear the previous keypoints instead of an empty entity
+        from foxglove_schemas_protobuf.SceneEntityDeletion_pb2 import SceneEntityDeletion
+
+        return SceneUpdate(deletions=[SceneEntityDeletion(timestamp=ts, type=SceneEntityDeletion.MATCHING_ID,
+                                                          id="keypoints")])
     ent = SceneEntity(timestamp=ts, frame_id="world", id="keypoints")
     for p in kp:
         ent.spheres.append(
@@ -254,7 +309,8 @@ def _scene_update(SceneUpdate: Any, msg: dict[str, Any], t: float) -> Any:
     for i, j in msg.get("edges", []):
         line.points.append(Point3(x=kp[i][0], y=kp[i][1], z=kp[i][2]))
         line.points.append(Point3(x=kp[j][0], y=kp[j][1], z=kp[j][2]))
-    ent.lines.append(line)
+    if line.points:  # Foxglove warns about a line without points
+        ent.lines.append(line)
     return SceneUpdate(entities=[ent])
 
 
@@ -332,15 +388,26 @@ class Recorder:
 
     The queue is bounded and ``put`` blocks when it is full: frames are never dropped here.
     A closed episode stays open for ``close_grace`` more frames so late keypoints of its last
-    frames (the tracker runs behind the camera) still land in it.
+    frames (the tracker runs behind the camera) still land in it. Images are encoded here, off the
+    capture thread: colour on this thread, depth on one helper thread at the same time.
+    ``cpu_seconds`` is the CPU time these two threads have used (encoding and writing).
     """
 
-    def __init__(self, camera_id: str, compression: str = "zstd", maxsize: int = 60, close_grace: int = 15) -> None:
+    def __init__(self, camera_id: str, compression: str = "zstd", maxsize: int = 60, close_grace: int = 15,
+                 color: ColorOutputConfig | None = None, depth: DepthOutputConfig | None = None) -> None:
         import queue
         import threading
+        from concurrent.futures import ThreadPoolExecutor
 
         self.camera_id = camera_id
         self.compression = compression
+        self.color = color or ColorOutputConfig()
+        self.depth = depth or DepthOutputConfig()
+        self.cpu_seconds = 0.0
+        self.frames_written = 0
+        self._cpu_lock = threading.Lock()
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="recorder-depth")
+        self._executor = _CpuTimedExecutor(self._pool, self._add_cpu)
         self.close_grace = close_grace
         self.finished: list[Path] = []
         self.errors: list[str] = []
@@ -380,6 +447,12 @@ class Recorder:
         self._thread.join(timeout)
         if self._thread.is_alive():
             self.errors.append(f"recorder did not finish within {timeout} s")
+        else:
+            self._pool.shutdown(wait=True)
+
+    def _add_cpu(self, seconds: float) -> None:
+        with self._cpu_lock:
+            self.cpu_seconds += seconds
 
     # ------------------------------------------------------------ writer thread
     def _finish(self, writer: EpisodeWriter, meta: dict[str, Any]) -> None:
@@ -410,18 +483,23 @@ class Recorder:
         self.keypoints_unmatched += 1
 
     def _run(self) -> None:
+        import time
+
         while True:
             item = self._q.get()
             op = item[0]
+            c0 = time.thread_time()
             try:
                 if op == "open":
                     if self._current is not None:  # defensive: never lose the previous one
                         self._finish(self._current, {**self._current_meta, "complete": False})
-                    self._current = EpisodeWriter(item[1], self.camera_id, self.compression)
+                    self._current = EpisodeWriter(item[1], self.camera_id, self.compression, self.color, self.depth,
+                                                  self._executor)
                     self._current_meta = dict(item[2])
                 elif op == "frame":
                     if self._current is not None:
                         self._current.write_frame(item[1], item[2])
+                        self.frames_written += 1
                     self._tick_closing()
                 elif op == "arm":
                     if self._current is not None:
@@ -447,3 +525,25 @@ class Recorder:
             except Exception as e:  # keep the thread alive; the session reads .errors
                 self.errors.append(f"recorder: {op}: {type(e).__name__}: {e}")
                 log.exception("recorder op %s failed", op)
+            finally:
+                self._add_cpu(time.thread_time() - c0)
+
+
+class _CpuTimedExecutor(Executor):
+    """Submits to ``inner`` and reports each task's CPU time (its thread's) to ``report``."""
+
+    def __init__(self, inner: Executor, report: Any) -> None:
+        self._inner, self._report = inner, report
+
+    def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> Any:  # noqa: ANN401 - Executor's signature
+        """Run ``fn(*args, **kwargs)`` on the inner executor, timing its thread's CPU."""
+        import time
+
+        def timed() -> Any:  # noqa: ANN401
+            c0 = time.thread_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self._report(time.thread_time() - c0)
+
+        return self._inner.submit(timed)

@@ -88,10 +88,11 @@ class Session:
             for path, outcome in recover_active(self.out_dir):
                 self.progress.message(f"found an unfinished episode from an earlier run: {path.name}: {outcome}")
             cam = self.config.station.camera
-            self._recorder = Recorder(cam.id, self.config.output.compression)
+            out = self.config.output
+            self._recorder = Recorder(cam.id, out.compression, color=out.color, depth=out.depth)
             self._stream = EpisodeStream(
                 self.out_dir, self._recorder, self.bus, cam.id, self.summary,
-                min_free_gb=self.config.output.min_free_gb, stop_event=self.stop_event,
+                min_free_gb=out.min_free_gb, stop_event=self.stop_event,
                 before_open=lambda: self._flush_pending(final=False),
             )
             if self.bus is not None:

@@ -42,27 +42,53 @@ class FrameMessage:
     run: dict[str, Any]  # what is being recorded: object, category, program, speed, run_index
 
 
+def points_to_json(points: Any, decimals: int = 6) -> list[dict[str, float]]:
+    """(N, 3) points -> [{"x", "y", "z"}, ...] rounded to ``decimals``."""
+    p = np.round(np.asarray(points, dtype=np.float64).reshape(-1, 3), decimals)
+    return [{"x": x, "y": y, "z": z} for x, y, z in p.tolist()]
+
+
+def edges_to_json(edges: Any) -> list[dict[str, int]]:
+    """(E, 2) index pairs -> [{"i", "j"}, ...]."""
+    return [{"i": i, "j": j} for i, j in np.asarray(edges, dtype=np.int64).reshape(-1, 2).tolist()]
+
+
+def points_from_json(value: Any) -> np.ndarray:
+    """[{"x", "y", "z"}, ...] or [[x, y, z], ...] -> (N, 3) float64."""
+    if value and isinstance(value[0], dict):
+        return np.array([[p["x"], p["y"], p["z"]] for p in value], dtype=np.float64).reshape(-1, 3)
+    return np.asarray(value if value is not None else [], dtype=np.float64).reshape(-1, 3)
+
+
+def edges_from_json(value: Any) -> np.ndarray:
+    """[{"i", "j"}, ...] or [[i, j], ...] -> (E, 2) int64."""
+    if value and isinstance(value[0], dict):
+        return np.array([[e["i"], e["j"]] for e in value], dtype=np.int64).reshape(-1, 2)
+    return np.asarray(value if value is not None else [], dtype=np.int64).reshape(-1, 2)
+
+
 def ground_truth_to_json(gt: GroundTruth, max_centreline: int = 400) -> dict[str, Any]:
-    """Ground truth as JSON (keypoints to 1 µm); the dense centreline / mid-surface is thinned to at most
+    """Ground truth as JSON (keypoints to 1 µm, points as ``{x, y, z}``, edges as ``{i, j}``: the layout
+    Foxglove's JSON parser takes); the dense centreline / mid-surface is thinned to at most
     ``max_centreline`` evenly picked samples, rounded to 0.1 mm, so a cloth frame's message stays small."""
     c = np.asarray(gt.centreline)
     idx = np.unique(np.linspace(0, len(c) - 1, min(max_centreline, len(c))).round().astype(int)) if len(c) else []
     return {
-        "keypoints": np.round(gt.keypoints, 6).tolist(),
-        "edges": gt.edges.tolist(),
+        "keypoints": points_to_json(gt.keypoints, 6),
+        "edges": edges_to_json(gt.edges),
         "anchors": gt.anchors.tolist(),
         "radius": gt.radius,
         "category": gt.category,
-        "centreline": np.round(c[idx], 4).tolist(),
+        "centreline": points_to_json(c[idx] if len(c) else np.zeros((0, 3)), 4),
     }
 
 
 def ground_truth_from_json(d: dict[str, Any]) -> GroundTruth:
-    """Inverse of :func:`ground_truth_to_json`; a missing field reads as empty (older episodes lack some)."""
+    """Inverse of :func:`ground_truth_to_json` (also plain nested lists); a missing field reads as empty."""
     return GroundTruth(
-        keypoints=np.asarray(d.get("keypoints", []), dtype=np.float64).reshape(-1, 3),
-        edges=np.asarray(d.get("edges", []), dtype=np.int64).reshape(-1, 2),
-        centreline=np.asarray(d.get("centreline") or [], dtype=np.float64).reshape(-1, 3),
+        keypoints=points_from_json(d.get("keypoints", [])),
+        edges=edges_from_json(d.get("edges", [])),
+        centreline=points_from_json(d.get("centreline")),
         radius=float(d.get("radius", 0.0)),
         anchors=np.asarray(d.get("anchors", []), dtype=np.int64),
         category=str(d.get("category", "")),

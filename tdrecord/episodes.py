@@ -21,6 +21,7 @@ from scipy.spatial.transform import Rotation
 from tdcommon.transforms import input_to_matrix
 from tdcommon.types import CameraIntrinsics, GroundTruth, RGBDFrame
 from tdcommon.wire import ground_truth_from_json
+from tdrecord.codecs import SCHEMA_VIDEO, CodecError, ImageDecoder
 from tdrecord.sequence import DEPTH_SCALE_MM, DatasetError, FrameSource, Sequence, nearest_index
 
 log = logging.getLogger(__name__)
@@ -62,6 +63,7 @@ class _EpisodeIndex:
     gripper_width: dict[str, np.ndarray]  # arm -> (S,) m
     ground_truth: list[GroundTruth | None]
     incomplete_frames: int
+    keyframes: np.ndarray | None = None  # (T,) bool: the colour image decodes without earlier ones
 
 
 def unfinished_message(path: Path) -> str:
@@ -159,6 +161,7 @@ def _index_episode(path: Path, camera_id: str | None) -> _EpisodeIndex:
     T = len(times)
     frame_numbers = np.empty(T, dtype=np.int64)
     device = np.empty(T)
+    keyframes = np.zeros(T, dtype=bool)
     host = np.empty(T)
     prev = -1
     for i, t in enumerate(times.tolist()):
@@ -167,6 +170,7 @@ def _index_episode(path: Path, camera_id: str | None) -> _EpisodeIndex:
             frame_numbers[i], device[i], host[i] = prev + 1, t * 1e-9, color_t[t] * 1e-9
         else:
             frame_numbers[i], device[i], host[i] = d["frame_number"], d["device_stamp"], d["host_stamp"]
+            keyframes[i] = bool(d.get("color_keyframe", True))  # files before H.264: every image stands alone
         prev = int(frame_numbers[i])
 
     cal = metadata.get("calibration") or {}
@@ -202,61 +206,66 @@ def _index_episode(path: Path, camera_id: str | None) -> _EpisodeIndex:
         path=path, topics=(f"{cam}/color", f"{cam}/depth"), times=times, frame_numbers=frame_numbers,
         device_stamps=device, host_stamps=host, K=K, width=width, height=height, T_world_cam=T_world_cam,
         T_world_base=T_world_base, metadata=metadata, state_stamps=state_stamps, q=q, u=u, grasped=grasped,
-        gripper_width=gripper_width, ground_truth=gt_list, incomplete_frames=incomplete,
+        gripper_width=gripper_width, ground_truth=gt_list, incomplete_frames=incomplete, keyframes=keyframes,
     )
 
 
-def _decode_image(msg: Any, where: str) -> tuple[np.ndarray, float]:
-    """A foxglove.RawImage -> (H, W, 3) uint8 RGB or (H, W) uint16 depth, and the depth scale (m per unit)."""
-    h, w, step, enc = int(msg.height), int(msg.width), int(msg.step), msg.encoding
-    rows = np.frombuffer(msg.data, dtype=np.uint8)
-    if rows.size < h * step:
-        raise DatasetError(f"{where}: image data holds {rows.size} bytes, expected {h * step}")
-    rows = rows[: h * step].reshape(h, step)
-    if enc in ("rgb8", "bgr8"):
-        img = rows[:, : w * 3].reshape(h, w, 3)
-        return (img[..., ::-1] if enc == "bgr8" else img).copy(), 1.0  # owned, writable
-    if enc in ("16UC1", "mono16"):
-        return np.ascontiguousarray(rows[:, : w * 2]).view("<u2").reshape(h, w).astype(np.uint16), DEPTH_SCALE_MM
-    if enc == "32FC1":  # metres -> mm
-        m = np.ascontiguousarray(rows[:, : w * 4]).view("<f4").reshape(h, w)
-        mm = np.clip(np.round(np.nan_to_num(m, nan=0.0) * 1000.0), 0, 65535).astype(np.uint16)
-        return mm, DEPTH_SCALE_MM
-    raise DatasetError(f"{where}: unsupported image encoding {enc!r}")
+def _decode_image(msg: Any, where: str, schema: str, decoder: ImageDecoder) -> tuple[np.ndarray, float]:
+    """An image message (foxglove.RawImage, CompressedImage png/jpeg, CompressedVideo h264 through the
+    stream's ``decoder``) -> (H, W, 3) uint8 RGB or (H, W) uint16 depth, and the depth scale (m per unit)."""
+    try:
+        img = decoder.decode(schema, msg)
+    except CodecError as e:
+        raise DatasetError(f"{where}: {e}" if not str(e).startswith(where) else str(e)) from e
+    return img, (1.0 if img.ndim == 3 else DEPTH_SCALE_MM)
 
 
 def _iter_episode_frames(ep: _EpisodeIndex, start: int = 0) -> Iterator[RGBDFrame]:
-    """Decode the colour + depth pairs of one episode from index ``start`` on, in log-time order."""
+    """Decode the colour + depth pairs of one episode from index ``start`` on, in log-time order.
+
+    H.264 colour decodes only from a keyframe on: decoding starts at the last keyframe at or before
+    ``start`` and the frames before ``start`` are decoded, not yielded.
+    """
     from mcap.reader import make_reader
     from mcap_protobuf.decoder import DecoderFactory
 
-    index = {int(t): i for i, t in enumerate(ep.times.tolist()) if i >= start}
-    if not index:
+    if start >= len(ep.times):
         return
+    keys = np.flatnonzero(ep.keyframes[: start + 1]) if ep.keyframes is not None else np.array([start])
+    first = int(keys[-1]) if len(keys) else 0
+    index = {int(t): i for i, t in enumerate(ep.times.tolist()) if i >= first}
     factory = DecoderFactory()
     decoders: dict[int, Callable[[bytes], Any]] = {}
     color_topic, depth_topic = ep.topics
+    images = {t: ImageDecoder(f"{ep.path} {t}") for t in (color_topic, depth_topic)}
     pending: dict[int, dict[str, Any]] = {}
-    t_from = int(ep.times[start])
+    t_from = int(ep.times[first])
     with open(ep.path, "rb") as f:
         reader = make_reader(f, decoder_factories=[factory])
         # mcap >= 1.3 names the inclusive lower bound starting_at (start_time is deprecated)
         since = "starting_at" if "starting_at" in inspect.signature(reader.iter_messages).parameters else "start_time"
         for schema, channel, msg in reader.iter_messages(topics=[color_topic, depth_topic], **{since: t_from}):
             i = index.get(msg.log_time)
-            if i is None or schema is None:
-                continue
+            if schema is None or (i is None and schema.name != SCHEMA_VIDEO):
+                continue  # a video message without its pair is still decoded: later frames depend on it
             dec = decoders.get(schema.id)
             if dec is None:
                 dec = decoders[schema.id] = factory.decoder_for(channel.message_encoding, schema)
+            where = f"{ep.path} frame {int(ep.frame_numbers[i]) if i is not None else '?'}"
+            if schema.name == SCHEMA_VIDEO or (i is not None and i >= start):
+                image = _decode_image(dec(msg.data), where, schema.name, images[channel.topic])
+            else:
+                image = None  # before ``start`` and not needed to decode later frames
+            if i is None:
+                continue
             slot = pending.setdefault(i, {})
-            slot[channel.topic] = dec(msg.data)
+            slot[channel.topic] = image
             if len(slot) < 2:
                 continue
             del pending[i]
-            where = f"{ep.path} frame {int(ep.frame_numbers[i])}"
-            color, _ = _decode_image(slot[color_topic], where)
-            depth, scale = _decode_image(slot[depth_topic], where)
+            if i < start:
+                continue
+            (color, _), (depth, scale) = slot[color_topic], slot[depth_topic]
             if color.ndim != 3 or depth.ndim != 2 or color.shape[:2] != depth.shape:
                 raise DatasetError(f"{where}: colour {color.shape} and depth {depth.shape} do not match")
             h, w = depth.shape

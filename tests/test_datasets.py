@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from orchestrator.config import ColorOutputConfig
 from orchestrator.recorder import EpisodeWriter, recover_active
 from tdcommon.transforms import invert_transform, matrix_to_pose7, pose7_to_matrix
 from tdcommon.types import GroundTruth, RGBDFrame
@@ -26,6 +27,8 @@ from tdrecord import (
     write_reference_npz,
 )
 from tests.conftest import make_frame
+
+RAW_COLOR = ColorOutputConfig(codec="raw")
 
 W, H = 64, 48
 
@@ -75,7 +78,7 @@ def _metadata() -> dict:
 
 def _episode(path: Path, frames: range, states: bool = True, gt: bool = False, close: bool = True) -> EpisodeWriter:
     """Frames ``frames`` at 30 Hz with arm states every 7 ms in between."""
-    w = EpisodeWriter(path, "cam0")
+    w = EpisodeWriter(path, "cam0", color=RAW_COLOR)  # random colour: exact
     for n in frames:
         if states:
             for t in np.arange(n / 30 - 1 / 30, n / 30, 0.007):

@@ -13,13 +13,16 @@ import numpy as np
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
+from orchestrator.config import ColorOutputConfig
 from orchestrator.recorder import EpisodeWriter, Recorder, recover_active
 from tdrecord import read_episode_metadata
 from tests.conftest import REPO, make_frame
 
+RAW_COLOR = ColorOutputConfig(codec="raw")
+
 
 def _write(path: Path, n: int) -> EpisodeWriter:
-    w = EpisodeWriter(path, "cam0")
+    w = EpisodeWriter(path, "cam0", color=RAW_COLOR)  # random colour: exact
     for i in range(n):
         w.write_frame(make_frame(i), np.eye(4))
         w.write_arm_state({"stamp": i / 30, "left": {}, "right": {}, "u": [0.0] * 12})

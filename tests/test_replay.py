@@ -11,6 +11,7 @@ from drivers.base import DeviceError, RGBDCamera, create_camera
 from drivers.clock import SimClock
 from drivers.config import ReplayCameraConfig
 from drivers.replay import ReplayCamera
+from orchestrator.config import ColorOutputConfig
 from orchestrator.recorder import EpisodeWriter
 from tdrecord import write_paper_layout
 from tests.conftest import make_frame
@@ -19,7 +20,7 @@ W, H = 64, 48
 
 
 def _episode(path: Path, frames: range) -> Path:
-    w = EpisodeWriter(path, "cam0")
+    w = EpisodeWriter(path, "cam0", color=ColorOutputConfig(codec="raw"))  # random colour compared exactly
     for n in frames:
         w.write_frame(make_frame(n, W, H), np.eye(4))
     K = make_frame(0, W, H).intrinsics.K
