@@ -43,7 +43,8 @@ def test_validate_reports_a_missing_program(tmp_path: Path, capsys) -> None:
     cfg = tmp_path / "c.yaml"
     cfg.write_text((REPO / "configs" / "mock.yaml").read_text().replace("[rope_swing]", "[no_such_program]"))
     assert main(["validate", str(cfg)]) == 1
-    assert "no library program 'no_such_program'; available: branched_lift, cloth_fold, rope_swing" in capsys.readouterr().out
+    expected = "no library program 'no_such_program'; available: branched_lift, cloth_fold, rope_swing"
+    assert expected in capsys.readouterr().out
 
 
 def test_inspect_and_recover(tmp_path: Path, capsys) -> None:
