@@ -22,6 +22,7 @@ import numpy as np
 
 from orchestrator.config import DEFAULT_CONFIG
 from orchestrator.offline import Variant, track_variants
+from orchestrator.progress import Progress
 
 TRACKED = ("init", "tracking", "degraded")
 ABLATIONS: dict[str, dict[str, bool]] = {
@@ -120,7 +121,7 @@ def _object_name(c: Capture) -> str:
 
 
 def evaluate_variants(caps: list[Capture], config: Any, make: Callable[[Any], dict[str, Variant]],
-                      max_frames: int | None, progress: bool) -> dict[str, dict[str, Scores]]:
+                      max_frames: int | None, progress: Progress) -> dict[str, dict[str, Scores]]:
     """{category: {variant: pooled Scores}} of every capture tracked with every variant in lockstep."""
     from orchestrator.worker import tracking_params
     from tdcommon.objects import DIMENSION
@@ -134,13 +135,11 @@ def evaluate_variants(caps: list[Capture], config: Any, make: Callable[[Any], di
                                                 max_frames):
             for name, out in outs.items():
                 scores[name].add(out, frame)
-            if progress and i % 15 == 0:
-                print(f"\r[{n + 1}/{len(caps)}] {cap.name}: frame {i}", end="", file=sys.stderr, flush=True)
+            progress.update(f"[{n + 1}/{len(caps)}] {cap.name}: frame {i}")
         group = pooled.setdefault(_object_name(cap), {name: Scores() for name in variants})
         for name, s in scores.items():
             group[name].extend(s)
-    if progress:
-        print("\r" + " " * 70 + "\r", end="", file=sys.stderr)
+    progress.done()
     return pooled
 
 
@@ -160,7 +159,7 @@ def baseline_variants(params: Any, beta_m: float = 0.05, lam: float = 2.0) -> di
     }
 
 
-def init_consistency(caps: list[Capture], config: Any, max_frames: int | None, progress: bool) -> dict[str, Any]:
+def init_consistency(caps: list[Capture], config: Any, max_frames: int | None, progress: Progress) -> dict[str, Any]:
     """The paper's Table III: initialise each capture from scratch; per-keypoint spread over the captures
     (RMS distance to the mean position, and the largest distance), with Abs / CD / F<10 of the
     initialisation frames. Every capture must be of one category and keypoint count."""
@@ -178,8 +177,7 @@ def init_consistency(caps: list[Capture], config: Any, max_frames: int | None, p
         found = None
         for i, _, outs, _ in track_variants(cap.sequences(), {"": Variant(params)}, DIMENSION.get(cap.category or ""),
                                             max_frames):
-            if progress and i % 15 == 0:
-                print(f"\r[{n + 1}/{len(caps)}] {cap.name}: frame {i}", end="", file=sys.stderr, flush=True)
+            progress.update(f"[{n + 1}/{len(caps)}] {cap.name}: frame {i}")
             if outs[""].status == "init":
                 found = outs[""]
                 break
@@ -192,8 +190,7 @@ def init_consistency(caps: list[Capture], config: Any, max_frames: int | None, p
         abs_mm.append(found.abs_mm)
         cd_mm.append(found.cd_mm)
         names.append(cap.name)
-    if progress:
-        print("\r" + " " * 70 + "\r", end="", file=sys.stderr)
+    progress.done()
     if len(inits) < 2:
         raise ValueError(f"init-consistency needs at least 2 initialised captures; got {len(inits)} "
                          f"(not initialised: {failed or 'none'})")
@@ -235,7 +232,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     try:
         config = load_config(args.config)
         caps = captures(args.inputs, args.category, args.keypoints)
-        progress = not args.json
+        progress = Progress(enabled=not args.json)
         if args.what == "init-consistency":
             result = init_consistency(caps, config, args.max_frames, progress)
             if args.json:
