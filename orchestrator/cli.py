@@ -1,4 +1,4 @@
-"""The ``trackdeform`` command line: demo, run, validate, program, worker, watch, track, inspect."""
+"""The ``trackdeform`` command line: demo, run, validate, program, worker, watch, track, inspect, report, eval."""
 
 from __future__ import annotations
 
@@ -245,7 +245,8 @@ def build_parser() -> argparse.ArgumentParser:
     rc.add_argument("directory")
     rc.set_defaults(func=cmd_recover)
 
-    for module in ("orchestrator.cli_program", "orchestrator.cli_tracking", "orchestrator.cli_devices"):
+    for module in ("orchestrator.cli_program", "orchestrator.cli_tracking", "orchestrator.cli_devices",
+                   "orchestrator.report", "orchestrator.cli_eval"):
         try:
             mod = __import__(module, fromlist=["register"])
         except ModuleNotFoundError as e:

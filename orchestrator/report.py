@@ -1,0 +1,572 @@
+"""``trackdeform report SESSION``: the morning report of a collection session as one offline HTML page.
+
+The page (``report.html``, rendered from the jinja2 template ``templates/report.html.j2``) and its PNGs
+(``images/``) go to one folder; nothing is fetched from the network when it opens. It holds the paper's
+Table I metrics (Abs, E<5, CD, F<10) per object and speed, with the ground-truth error in mock mode; the
+collection summary from ``session.journal.jsonl`` and ``summary.json``; per-run plots of edge-length error
+and Chamfer distance against time (the paper's Fig. 5); one 3D keypoint-trajectory figure per object
+(Fig. 1); and thumbnails with the keypoints drawn on the colour image.
+
+Episodes are streamed: one episode file is read at a time and only per-frame scalars, the run's keypoints
+(for its trajectory figure) and a few thumbnails are kept, so memory does not grow with the session.
+"""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+import json
+import math
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from orchestrator.progress import Progress
+from tdrecord.episodes import ACTIVE_SUFFIX
+
+TRACKED = ("init", "tracking", "degraded")  # keypoint statuses whose keypoints count in the metrics
+THUMB_WIDTH = 480  # px, thumbnails are scaled down to this width
+IMAGES = "images"
+
+
+class ReportError(ValueError):
+    """The session folder cannot be reported on (missing, no episodes); the message names the path."""
+
+
+@dataclass
+class RunData:
+    """What the report keeps of one program run (one attempt): per-frame metrics and a few frames.
+
+    t: (F,) s since the run's first frame, of the F frames with tracked keypoints; abs_mm, cd_mm: (F,)
+    the paper's per-frame edge-length RMSE and keypoint-to-cloud distance; gt_mm: (F,) GT error (nan
+    without ground truth); keypoints: F arrays (N, 3) m world; frame_numbers: (F,).
+    """
+
+    key: tuple
+    object: str
+    category: str
+    program: str
+    speed: str
+    repeat: int
+    attempt: int
+    plan_pass: int
+    episodes: list[Path]
+    frames: int = 0
+    source: str = "none"  # "recorded" (the live worker's /keypoints), "offline" (tracked by the report), "none"
+    t: list[float] = field(default_factory=list)
+    abs_mm: list[float] = field(default_factory=list)
+    cd_mm: list[float] = field(default_factory=list)
+    gt_mm: list[float] = field(default_factory=list)
+    keypoints: list[np.ndarray] = field(default_factory=list)
+    frame_numbers: list[int] = field(default_factory=list)
+    edges: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    statuses: dict[str, int] = field(default_factory=dict)
+    log_times: dict[int, tuple[Path, int]] = field(default_factory=dict)  # frame number -> (file, colour log ns)
+    incomplete: int = 0
+    faults: int = 0
+    bytes: int = 0
+
+    @property
+    def label(self) -> str:
+        """``object · program · speed · #repeat`` like the session's progress line."""
+        extra = f" (attempt {self.attempt})" if self.attempt > 1 else ""
+        return f"{self.object} · {self.program} · {self.speed} · #{self.repeat + 1}{extra}"
+
+
+# ---------------------------------------------------------------------- reading
+def _episode_files(session: Path) -> tuple[list[Path], list[Path]]:
+    return sorted(session.glob("episode_*.mcap")), sorted(session.glob(f"*{ACTIVE_SUFFIX}"))
+
+
+def _run_key(meta: dict[str, Any]) -> tuple:
+    return (meta.get("session_started"), meta.get("plan_pass", 0), meta.get("run_index"), meta.get("object"),
+            meta.get("program"), meta.get("speed"), meta.get("repeat", 0), meta.get("attempt", 1))
+
+
+def group_runs(files: list[Path]) -> list[RunData]:
+    """Episode files grouped into program runs (one attempt each) by their ``episode`` metadata, in file order."""
+    from tdrecord import read_episode_metadata
+
+    runs: dict[tuple, RunData] = {}
+    for f in files:
+        try:
+            meta = read_episode_metadata(f)
+        except Exception as e:  # an unreadable file is reported, not fatal
+            meta = {"object": "?", "program": "?", "speed": "?", "unreadable": f"{type(e).__name__}: {e}"}
+        key = _run_key(meta)
+        run = runs.get(key)
+        if run is None:
+            run = runs[key] = RunData(
+                key=key, object=str(meta.get("object", "?")), category=str(meta.get("category", "")),
+                program=str(meta.get("program", "?")), speed=str(meta.get("speed", "?")),
+                repeat=int(meta.get("repeat", 0) or 0), attempt=int(meta.get("attempt", 1) or 1),
+                plan_pass=int(meta.get("plan_pass", 0) or 0), episodes=[],
+            )
+        run.episodes.append(f)
+        run.bytes += f.stat().st_size
+        run.incomplete += int(meta.get("complete") is False)
+        run.faults += int(bool(meta.get("fault")))
+    return list(runs.values())
+
+
+def _camera_topics(topics: set[str]) -> tuple[str, str]:
+    cams = sorted(t.split("/")[2] for t in topics if t.startswith("/cam/") and t.endswith("/color"))
+    if not cams:
+        raise ReportError(f"no '/cam/<id>/color' channel (channels: {sorted(topics)})")
+    return f"/cam/{cams[0]}/color", f"/cam/{cams[0]}/frame_info"
+
+
+def _gt_error(kp: np.ndarray, gt: dict[str, Any]) -> float:
+    from tdcommon.wire import ground_truth_from_json
+    from tracking.metrics import surface_error_mm
+
+    g = ground_truth_from_json(gt)
+    if not len(g.centreline):
+        return float("nan")
+    return surface_error_mm(kp, g.centreline, g.radius, polyline=g.category != "cloth")
+
+
+def read_recorded(run: RunData) -> None:
+    """Fill ``run`` from its episodes' ``/keypoints`` (and ``/ground_truth/keypoints``), one file at a time."""
+    from mcap.reader import make_reader
+
+    t0: float | None = None
+    for path in run.episodes:
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            summary = reader.get_summary()
+            topics = {c.topic for c in summary.channels.values()} if summary else set()
+            color, info = _camera_topics(topics)
+            kps: dict[int, dict[str, Any]] = {}
+            gts: dict[int, dict[str, Any]] = {}
+            for _, channel, msg in reader.iter_messages(
+                topics=[t for t in (info, "/keypoints", "/ground_truth/keypoints") if t in topics]
+            ):
+                d = json.loads(msg.data)
+                fn = int(d.get("frame_number", -1))
+                if channel.topic == info:
+                    run.frames += 1
+                    run.log_times[fn] = (path, int(msg.log_time))
+                    if t0 is None:
+                        t0 = float(d.get("device_stamp", msg.log_time * 1e-9))
+                elif channel.topic == "/keypoints":
+                    kps[fn] = d
+                else:
+                    gts[fn] = d
+        for fn in sorted(kps):
+            d = kps[fn]
+            status = str(d.get("status", ""))
+            run.statuses[status] = run.statuses.get(status, 0) + 1
+            X = np.asarray(d.get("keypoints", []), np.float64).reshape(-1, 3)
+            if status not in TRACKED or not len(X) or d.get("abs_mm") is None or d.get("cd_mm") is None:
+                continue
+            if run.keypoints and len(X) != len(run.keypoints[0]):
+                continue  # a re-initialisation with another keypoint count: the run's figures keep the first
+            if not len(run.edges):
+                run.edges = np.asarray(d.get("edges", []), np.int64).reshape(-1, 2)
+            run.t.append(float(d.get("stamp", 0.0)) - (t0 or 0.0))
+            run.abs_mm.append(float(d["abs_mm"]))
+            run.cd_mm.append(float(d["cd_mm"]))
+            run.gt_mm.append(_gt_error(X, gts[fn]) if fn in gts else float("nan"))
+            run.keypoints.append(X)
+            run.frame_numbers.append(fn)
+    if run.keypoints:
+        run.source = "recorded"
+
+
+def track_offline(run: RunData, config: Any, tick: Callable[[int], None] | None = None) -> None:
+    """Fill ``run`` by tracking its episodes offline (one pipeline across them, frames decoded one at a time);
+    ``tick(frames_done)`` is called every 15 frames (progress display)."""
+    from orchestrator.offline import track_frames
+    from orchestrator.worker import tracking_params
+    from tdcommon.objects import DIMENSION
+    from tdrecord import read_episode_metadata, read_episodes
+    from tracking.metrics import surface_error_mm
+
+    meta = read_episode_metadata(run.episodes[0])
+    params = tracking_params(config.tracking, run.category or None, meta.get("n_keypoints"))
+    seqs = (read_episodes(p) for p in run.episodes)
+    t0: float | None = None
+    run.statuses = {}
+    for tf in track_frames(seqs, params, DIMENSION.get(run.category)):
+        out, frame = tf.out, tf.frame
+        if tick is not None and tf.index % 15 == 0:
+            tick(tf.index)
+        if t0 is None:
+            t0 = frame.device_stamp
+        run.statuses[out.status] = run.statuses.get(out.status, 0) + 1
+        if out.status not in TRACKED or not len(out.keypoints) or not math.isfinite(out.cd_mm):
+            continue
+        if run.keypoints and len(out.keypoints) != len(run.keypoints[0]):
+            continue
+        if not len(run.edges) and out.topology is not None:
+            run.edges = np.asarray(out.topology.edges, np.int64)
+        gt = frame.ground_truth
+        run.t.append(frame.device_stamp - t0)
+        run.abs_mm.append(float(out.abs_mm))
+        run.cd_mm.append(float(out.cd_mm))
+        run.gt_mm.append(surface_error_mm(out.keypoints, gt.centreline, gt.radius, polyline=gt.category != "cloth")
+                         if gt is not None and len(gt.centreline) else float("nan"))
+        run.keypoints.append(np.array(out.keypoints))
+        run.frame_numbers.append(frame.frame_number)
+    if run.keypoints:
+        run.source = "offline"
+
+
+def read_color(path: Path, log_time: int) -> np.ndarray:
+    """The colour image (H, W, 3) uint8 RGB logged at ``log_time`` ns in an episode file."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from tdrecord.episodes import _decode_image
+
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        color, _ = _camera_topics({c.topic for c in summary.channels.values()} if summary else set())
+        params = inspect.signature(reader.iter_messages).parameters
+        window = ({"starting_at": log_time, "ending_before": log_time + 1} if "starting_at" in params
+                  else {"start_time": log_time, "end_time": log_time + 1})
+        for _, _, _, decoded in reader.iter_decoded_messages(topics=[color], **window):
+            return _decode_image(decoded, f"{path} at {log_time} ns")[0]
+    raise ReportError(f"{path}: no colour image logged at {log_time} ns")
+
+
+# ---------------------------------------------------------------------- figures
+def project(points: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (N, 2) of world points (N, 3) m through K (3, 3) and the camera pose (4, 4), and
+    which of them lie in front of the camera (N,) bool."""
+    T_cam_world = np.linalg.inv(T_world_cam)
+    pc = points @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    z = pc[:, 2]
+    front = z > 1e-6
+    uvw = pc @ K.T
+    uv = uvw[:, :2] / np.where(front, z, 1.0)[:, None]
+    return uv, front
+
+
+def draw_thumbnail(color: np.ndarray, X: np.ndarray, edges: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray,
+                   width: int = THUMB_WIDTH) -> np.ndarray:
+    """The colour image (H, W, 3) RGB scaled to ``width`` px with keypoints X (N, 3) m (coloured by index)
+    and their edges (E, 2) drawn on it."""
+    import cv2
+    from matplotlib import colormaps
+
+    h, w = color.shape[:2]
+    s = width / w
+    img = cv2.resize(color, (width, max(1, int(round(h * s)))), interpolation=cv2.INTER_AREA)
+    uv, front = project(X, K, T_world_cam)
+    px = np.round(uv * s).astype(int)
+    for i, j in edges:
+        if front[i] and front[j]:
+            cv2.line(img, tuple(map(int, px[i])), tuple(map(int, px[j])), (255, 255, 255), 1, cv2.LINE_AA)
+    cols = (np.asarray(colormaps["viridis"](np.linspace(0, 1, max(2, len(X))))[:, :3]) * 255).astype(int)
+    for k in np.nonzero(front)[0]:
+        cv2.circle(img, tuple(map(int, px[k])), 3, tuple(int(c) for c in cols[k]), -1, cv2.LINE_AA)
+    return img
+
+
+def plot_run(run: RunData, path: Path) -> None:
+    """Fig. 5: edge-length error (Abs) and Chamfer distance (and the GT error in mock mode) against time."""
+    import matplotlib.pyplot as plt
+
+    t = np.asarray(run.t)
+    gt = np.asarray(run.gt_mm)
+    fig, axes = plt.subplots(2, 1, figsize=(7.0, 3.8), sharex=True, constrained_layout=True)
+    axes[0].plot(t, run.abs_mm, lw=1.0, color="tab:blue", label="Abs (edge-length RMSE)")
+    if np.isfinite(gt).any():
+        axes[0].plot(t, gt, lw=1.0, color="tab:green", label="GT error")
+    axes[0].axhline(5.0, color="grey", lw=0.6, ls="--")
+    axes[0].set_ylabel("mm")
+    axes[0].legend(loc="upper right", fontsize=7)
+    axes[1].plot(t, run.cd_mm, lw=1.0, color="tab:orange", label="CD (Chamfer distance)")
+    axes[1].axhline(10.0, color="grey", lw=0.6, ls="--")
+    axes[1].set_ylabel("mm")
+    axes[1].set_xlabel("time in run, s")
+    axes[1].legend(loc="upper right", fontsize=7)
+    fig.suptitle(run.label, fontsize=9)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def plot_trajectory(run: RunData, path: Path, max_samples: int = 120) -> None:
+    """Fig. 1: every keypoint's 3D trajectory, colour by keypoint index, opacity by time (faint early,
+    opaque late), with the last frame's edges."""
+    import matplotlib.pyplot as plt
+    from matplotlib import colormaps
+
+    traj = np.stack(run.keypoints)  # (F, N, 3) m
+    F, N = traj.shape[:2]
+    idx = np.unique(np.linspace(0, F - 1, min(F, max_samples)).round().astype(int))
+    sub = traj[idx]
+    cols = np.asarray(colormaps["viridis"](np.linspace(0, 1, max(2, N))))[:N]
+    alpha = np.linspace(0.08, 1.0, len(idx))
+    rgba = np.repeat(cols[None], len(idx), axis=0)
+    rgba[..., 3] = alpha[:, None]
+    fig = plt.figure(figsize=(5.5, 4.5), constrained_layout=True)
+    ax = fig.add_subplot(projection="3d")
+    ax.scatter(sub[..., 0].ravel(), sub[..., 1].ravel(), sub[..., 2].ravel(), c=rgba.reshape(-1, 4), s=4,
+               depthshade=False)
+    last = traj[-1]
+    for i, j in run.edges:
+        ax.plot(*np.stack([last[i], last[j]]).T, color="black", lw=0.8)
+    ax.set_xlabel("x, m")
+    ax.set_ylabel("y, m")
+    ax.set_zlabel("z, m")
+    lo, hi = sub.reshape(-1, 3).min(axis=0), sub.reshape(-1, 3).max(axis=0)
+    c, r = (lo + hi) / 2, max(float((hi - lo).max()) / 2, 1e-3)
+    ax.set_xlim(c[0] - r, c[0] + r)
+    ax.set_ylim(c[1] - r, c[1] + r)
+    ax.set_zlim(c[2] - r, c[2] + r)
+    ax.set_title(f"{run.object}: {N} keypoints over {run.t[-1] - run.t[0]:.1f} s ({run.label})", fontsize=8)
+    sm = plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(0, N - 1))
+    fig.colorbar(sm, ax=ax, shrink=0.6, label="keypoint index")
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------------- tables
+def _fmt(v: float, digits: int = 2) -> str:
+    return "–" if v is None or not math.isfinite(v) else f"{v:.{digits}f}"
+
+
+def quality_rows(runs: list[RunData]) -> list[dict[str, Any]]:
+    """Table I per object and speed: Abs, E<5, CD, F<10 over every tracked frame of its runs, GT RMSE."""
+    from tracking.metrics import sequence_summary
+
+    groups: dict[tuple[str, str], list[RunData]] = {}
+    for r in runs:
+        if r.abs_mm:
+            groups.setdefault((r.object, r.speed), []).append(r)
+    rows = []
+    for (obj, speed), rs in sorted(groups.items()):
+        a = np.concatenate([r.abs_mm for r in rs])
+        c = np.concatenate([r.cd_mm for r in rs])
+        g = np.concatenate([r.gt_mm for r in rs])
+        m = sequence_summary(a, c)
+        g = g[np.isfinite(g)]
+        rows.append({
+            "object": obj, "speed": speed, "runs": len(rs), "frames": int(len(a)),
+            "tracked": f"{100.0 * len(a) / max(1, sum(r.frames for r in rs)):.0f} %",
+            "Abs": _fmt(m["Abs"]), "E<5": _fmt(m["E<5"], 1), "CD": _fmt(m["CD"]), "F<10": _fmt(m["F<10"], 1),
+            "GT": _fmt(float(np.sqrt(np.mean(g**2)))) if len(g) else "–",
+            "source": ", ".join(sorted({r.source for r in rs})),
+        })
+    return rows
+
+
+def collection_summary(session: Path, runs: list[RunData], active: list[Path]) -> dict[str, Any]:
+    """Runs done / failed / skipped with reasons (journal), frames (summary.json), episodes, disk, incidents."""
+    from orchestrator.journal import read_journal
+
+    journal_path = session / "session.journal.jsonl"
+    records: list[dict[str, Any]] = read_journal(journal_path).records if journal_path.is_file() else []
+    outcomes = [r for r in records if r.get("type") == "run"]
+
+    def label(r: dict[str, Any]) -> str:
+        return (f"{r.get('object')} · {r.get('program')} · {r.get('speed')} · #{int(r.get('repeat', 0)) + 1}"
+                f" (pass {r.get('pass', 0)}, attempt {r.get('attempt', 1)})")
+
+    runs_table = [{"run": label(r), "outcome": r.get("outcome", "?"), "reason": r.get("reason") or "",
+                   "episodes": len(r.get("episodes") or []), "wall": _fmt(float(r.get("wall_seconds") or 0), 1),
+                   "finished": r.get("finished", "")} for r in outcomes]
+    counts = {k: sum(1 for r in outcomes if r.get("outcome") == k) for k in ("done", "failed", "skipped")}
+    incidents: list[str] = []
+    open_starts: dict[tuple, dict[str, Any]] = {}
+    for r in records:
+        k = (r.get("pass"), r.get("object"), r.get("program"), r.get("speed"), r.get("repeat"), r.get("attempt"))
+        if r.get("type") == "start":
+            open_starts[k] = r
+        elif r.get("type") == "run":
+            open_starts.pop(k, None)
+            if r.get("outcome") != "done":
+                incidents.append(f"{label(r)}: {r.get('outcome')}: {r.get('reason') or 'no reason given'}")
+    for r in open_starts.values():
+        incidents.append(f"{label(r)}: started {r.get('started', '?')} and never finished (crash or stop)")
+    sessions = [r for r in records if r.get("type") == "session"]
+    if len(sessions) > 1:
+        incidents.append(f"the folder was recorded by {len(sessions)} sessions (resumed "
+                         f"{len(sessions) - 1} time(s): " + ", ".join(str(s.get('started')) for s in sessions) + ")")
+    summary: dict[str, Any] = {}
+    summary_path = session / "summary.json"
+    if summary_path.is_file():
+        try:
+            summary = json.loads(summary_path.read_text())
+        except json.JSONDecodeError as e:
+            incidents.append(f"{summary_path.name}: unreadable ({e})")
+    for e in summary.get("errors") or []:
+        incidents.append(f"error: {e}")
+    for e in summary.get("runs_cut_short") or []:
+        incidents.append(f"cut short: {e}")
+    if summary.get("stopped_early"):
+        incidents.append(f"stopped early: {summary['stopped_early']}")
+    if summary.get("faults_recovered"):
+        incidents.append(f"{summary['faults_recovered']} fault(s) recovered during runs")
+    for r in runs:
+        if r.faults:
+            incidents.append(f"{r.label}: {r.faults} episode(s) flagged with a fault")
+        if r.incomplete:
+            incidents.append(f"{r.label}: {r.incomplete} episode(s) incomplete (cut short)")
+    for a in active:
+        incidents.append(f"{a.name}: unfinished file (run `trackdeform recover {session}`)")
+    disk = sum(p.stat().st_size for p in session.iterdir() if p.is_file())
+    return {
+        "runs_done": counts["done"], "runs_failed": counts["failed"], "runs_skipped": counts["skipped"],
+        "runs_table": runs_table, "journal": journal_path.name if records else "(no journal)",
+        "frames_captured": summary.get("frames_captured", sum(r.frames for r in runs)),
+        "frames_dropped": summary.get("frames_dropped", "–"),
+        "recorded_seconds": _fmt(float(summary.get("recorded_seconds") or 0.0), 1),
+        "episodes": sum(len(r.episodes) for r in runs), "disk": f"{disk / 1e9:.2f} GB" if disk > 1e8
+        else f"{disk / 1e6:.1f} MB", "sessions": len(sessions), "incidents": incidents,
+    }
+
+
+# ---------------------------------------------------------------------- the page
+def _bar(done: int, total: int, width: int = 24) -> str:
+    n = int(round(width * done / max(1, total)))
+    return "[" + "#" * n + "-" * (width - n) + f"] {done}/{total} episodes"
+
+
+def build_report(
+    session: Path,
+    out: Path,
+    *,
+    config: Any = None,
+    track_missing: bool = False,
+    thumbnails: int = 4,
+    progress: Progress | None = None,
+) -> Path:
+    """Write ``out/report.html`` and ``out/images/*.png`` for a session folder; returns the page's path.
+
+    track_missing: runs whose episodes hold no tracked keypoints (tracking off, or a worker that did not
+    keep up) are tracked offline with ``config``'s tracking section (else they appear without metrics).
+    """
+    import cv2
+    import jinja2
+    import matplotlib
+
+    matplotlib.use("Agg")
+    session = Path(session)
+    if not session.is_dir():
+        raise ReportError(f"{session}: no such session folder")
+    files, active = _episode_files(session)
+    if not files:
+        hint = f" ({len(active)} unfinished: run `trackdeform recover {session}`)" if active else ""
+        raise ReportError(f"{session}: no episode_*.mcap files{hint}")
+    out = Path(out)
+    (out / IMAGES).mkdir(parents=True, exist_ok=True)
+    progress = progress or Progress()
+    t_start = time.monotonic()
+    runs = group_runs(files)
+    done = 0
+    per_object: dict[str, RunData] = {}
+    run_views = []
+    notes = []
+    for n, run in enumerate(runs):
+        progress.update(f"{_bar(done, len(files))} | {run.label}", force=True)
+        read_recorded(run)
+        if run.source == "none" and track_missing:
+            if config is None:
+                from orchestrator.config import DEFAULT_CONFIG, load_config
+
+                config = load_config(DEFAULT_CONFIG)
+            frames = run.frames
+            track_offline(run, config, lambda i, d=done, f=frames, lbl=run.label: progress.update(
+                f"{_bar(d, len(files))} | {lbl}: tracking offline, frame {i}/{f}"))
+        done += len(run.episodes)
+        view: dict[str, Any] = {"label": run.label, "episodes": len(run.episodes), "frames": run.frames,
+                                "tracked": len(run.t), "source": run.source, "statuses": run.statuses,
+                                "plot": None, "thumbs": []}
+        if run.source == "none":
+            notes.append(f"{run.label}: no tracked keypoints in its episodes"
+                         + ("" if track_missing else " (tracking off or the worker did not keep up: "
+                                                      "pass --track-missing to track it offline)"))
+        else:
+            from tracking.metrics import sequence_summary
+
+            m = sequence_summary(np.asarray(run.abs_mm), np.asarray(run.cd_mm))
+            g = np.asarray(run.gt_mm)
+            g = g[np.isfinite(g)]
+            view.update({k: _fmt(v, 1 if k.endswith("10") or k.endswith("5") else 2) for k, v in m.items()})
+            view["GT"] = _fmt(float(np.sqrt(np.mean(g**2)))) if len(g) else "–"
+            name = f"run{n:03d}_metrics.png"
+            plot_run(run, out / IMAGES / name)
+            view["plot"] = f"{IMAGES}/{name}"
+            if run.object not in per_object:
+                per_object[run.object] = run
+                tname = f"trajectory_{_safe(run.object)}.png"
+                plot_trajectory(run, out / IMAGES / tname)
+            from tdrecord import read_calibration
+
+            cal = read_calibration(run.episodes[0])
+            picks = np.unique(np.linspace(0, len(run.t) - 1, max(1, thumbnails)).round().astype(int))
+            for k in picks:
+                fn = run.frame_numbers[k]
+                if fn not in run.log_times:
+                    continue
+                path, lt = run.log_times[fn]
+                img = draw_thumbnail(read_color(path, lt), run.keypoints[k], run.edges, cal.K, cal.T_world_cam,
+                                     THUMB_WIDTH)
+                tname = f"run{n:03d}_frame{fn}.png"
+                cv2.imwrite(str(out / IMAGES / tname), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+                view["thumbs"].append({"src": f"{IMAGES}/{tname}", "caption": f"frame {fn}, t = {run.t[k]:.1f} s"})
+        run_views.append(view)
+        if run is not per_object.get(run.object):  # keep only what the page still needs
+            run.keypoints, run.frame_numbers, run.log_times = [], [], {}
+    progress.update(f"{_bar(done, len(files))} | writing the page", force=True)
+    trajectories = [{"object": o, "src": f"{IMAGES}/trajectory_{_safe(o)}.png", "run": r.label}
+                    for o, r in per_object.items()]
+    env = jinja2.Environment(loader=jinja2.PackageLoader("orchestrator", "templates"),
+                             autoescape=jinja2.select_autoescape(["html", "j2"]))
+    html = env.get_template("report.html.j2").render(
+        session=str(session.resolve()), generated=time.strftime("%Y-%m-%d %H:%M:%S"),
+        quality=quality_rows(runs), collection=collection_summary(session, runs, active), runs=run_views,
+        trajectories=trajectories, notes=notes, seconds=f"{time.monotonic() - t_start:.1f}",
+    )
+    page = out / "report.html"
+    page.write_text(html, encoding="utf-8")
+    progress.update(f"{_bar(done, len(files))} | done in {time.monotonic() - t_start:.1f} s", force=True)
+    progress.done()
+    return page
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in name) or "object"
+
+
+# ---------------------------------------------------------------------- CLI
+def cmd_report(args: argparse.Namespace) -> int:
+    """``trackdeform report SESSION [--out DIR]``."""
+    from orchestrator.config import ConfigError, load_config
+
+    try:
+        config = load_config(args.config) if args.config else None
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    out = Path(args.out) if args.out else Path(args.session) / "report"
+    try:
+        page = build_report(Path(args.session), out, config=config, track_missing=args.track_missing,
+                            thumbnails=args.thumbnails)
+    except ReportError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(page)
+    return 0
+
+
+def register(sub: Any) -> None:
+    """Add the ``report`` subcommand to the main parser."""
+    p = sub.add_parser("report", help="the morning report of a session: HTML page + PNGs, opens offline")
+    p.add_argument("session", help="session folder (episodes, session.journal.jsonl, summary.json)")
+    p.add_argument("--out", help="output folder (default: SESSION/report)")
+    p.add_argument("--track-missing", action="store_true",
+                   help="track runs recorded without keypoints offline (slow: every frame is tracked)")
+    p.add_argument("--config", help="tracking parameters for --track-missing (default: the mock config)")
+    p.add_argument("--thumbnails", type=int, default=4, help="thumbnails per run")
+    p.set_defaults(func=cmd_report)
