@@ -14,7 +14,6 @@ Episodes are streamed: one episode file is read at a time and only per-frame sca
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
 import math
 import sys
@@ -27,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from orchestrator.progress import Progress
+from tdcommon.wire import edges_from_json, points_from_json
 from tdrecord.episodes import ACTIVE_SUFFIX
 
 TRACKED = ("init", "tracking", "degraded")  # keypoint statuses whose keypoints count in the metrics
@@ -66,7 +66,7 @@ class RunData:
     frame_numbers: list[int] = field(default_factory=list)
     edges: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
     statuses: dict[str, int] = field(default_factory=dict)
-    log_times: dict[int, tuple[Path, int]] = field(default_factory=dict)  # frame number -> (file, colour log ns)
+    log_times: dict[int, tuple[Path, int]] = field(default_factory=dict)  # frame number -> (file, frame_info log ns)
     incomplete: int = 0
     faults: int = 0
     bytes: int = 0
@@ -162,13 +162,13 @@ def read_recorded(run: RunData) -> None:
             d = kps[fn]
             status = str(d.get("status", ""))
             run.statuses[status] = run.statuses.get(status, 0) + 1
-            X = np.asarray(d.get("keypoints", []), np.float64).reshape(-1, 3)
+            X = points_from_json(d.get("keypoints", []))
             if status not in TRACKED or not len(X) or d.get("abs_mm") is None or d.get("cd_mm") is None:
                 continue
             if run.keypoints and len(X) != len(run.keypoints[0]):
                 continue  # a re-initialisation with another keypoint count: the run's figures keep the first
             if not len(run.edges):
-                run.edges = np.asarray(d.get("edges", []), np.int64).reshape(-1, 2)
+                run.edges = edges_from_json(d.get("edges", []))
             run.t.append(float(d.get("stamp", 0.0)) - (t0 or 0.0))
             run.abs_mm.append(float(d["abs_mm"]))
             run.cd_mm.append(float(d["cd_mm"]))
@@ -218,23 +218,16 @@ def track_offline(run: RunData, config: Any, tick: Callable[[int], None] | None 
         run.source = "offline"
 
 
-def read_color(path: Path, log_time: int) -> np.ndarray:
-    """The colour image (H, W, 3) uint8 RGB logged at ``log_time`` ns in an episode file."""
-    from mcap.reader import make_reader
-    from mcap_protobuf.decoder import DecoderFactory
+def read_color(path: Path, frame_number: int) -> np.ndarray:
+    """The colour image (H, W, 3) uint8 RGB of frame ``frame_number`` of an episode file (decoded through
+    the episode reader, so an H.264 frame is decoded from its keyframe on)."""
+    from tdrecord import read_episodes
 
-    from tdrecord.episodes import _decode_image
-
-    with open(path, "rb") as f:
-        reader = make_reader(f, decoder_factories=[DecoderFactory()])
-        summary = reader.get_summary()
-        color, _ = _camera_topics({c.topic for c in summary.channels.values()} if summary else set())
-        params = inspect.signature(reader.iter_messages).parameters
-        window = ({"starting_at": log_time, "ending_before": log_time + 1} if "starting_at" in params
-                  else {"start_time": log_time, "end_time": log_time + 1})
-        for _, _, _, decoded in reader.iter_decoded_messages(topics=[color], **window):
-            return _decode_image(decoded, f"{path} at {log_time} ns")[0]
-    raise ReportError(f"{path}: no colour image logged at {log_time} ns")
+    seq = read_episodes(path)
+    where = np.flatnonzero(seq.frame_numbers == frame_number) if seq.frame_numbers is not None else []
+    if not len(where):
+        raise ReportError(f"{path}: no frame {frame_number}")
+    return next(iter(seq.frames.iter_from(int(where[0])))).color  # type: ignore[attr-defined]
 
 
 # ---------------------------------------------------------------------- figures
@@ -509,8 +502,8 @@ def build_report(
                 fn = run.frame_numbers[k]
                 if fn not in run.log_times:
                     continue
-                path, lt = run.log_times[fn]
-                img = draw_thumbnail(read_color(path, lt), run.keypoints[k], run.edges, cal.K, cal.T_world_cam,
+                path, _ = run.log_times[fn]
+                img = draw_thumbnail(read_color(path, fn), run.keypoints[k], run.edges, cal.K, cal.T_world_cam,
                                      THUMB_WIDTH)
                 tname = f"run{n:03d}_frame{fn}.png"
                 cv2.imwrite(str(out / IMAGES / tname), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
