@@ -94,15 +94,21 @@ def _arm_geometry(seq: Any, i: int, arms: Any) -> tuple[Any, Any, Any, Any]:
 
 
 def track_sequence(seq: Any, params: Any, kind: str | None, progress: bool = True) -> dict[str, Any]:
-    """Run the pipeline over every frame; returns raw keypoints (T, N, 3) m (NaN before init), topology, metrics."""
+    """Run the pipeline over every frame, then fill the frames left without keypoints (before initialisation,
+    after a loss) by tracking from their tracked neighbour (``tracking.offline.fill_missing``); returns raw
+    keypoints (T, N, 3) m (NaN only where no frame was ever tracked), topology, metrics. The frames without
+    keypoints are kept in memory for the second pass (their uint16 depth, ~2 MB each at 1280x720)."""
     from orchestrator.worker import ArmModel
     from tracking.metrics import sequence_summary, surface_error_mm
+    from tracking.offline import FrameInput, fill_missing
     from tracking.pipeline import LivePipeline
 
     arms = ArmModel(seq.T_world_base) if seq.T_world_base is not None else None
     pipe = LivePipeline(params, seq.K, seq.T_world_cam, kind)
     T = len(seq)
     raw: list[np.ndarray | None] = []
+    grasp: list[np.ndarray | None] = []
+    pending: dict[int, tuple[np.ndarray, float]] = {}  # frame -> (depth uint16, scale) of frames without keypoints
     statuses: list[str] = []
     abs_mm, cd_mm, gt_mm, ms = [], [], [], []
     topology = None
@@ -117,6 +123,9 @@ def track_sequence(seq: Any, params: Any, kind: str | None, progress: bool = Tru
             topology = out.topology
         same = topology is not None and len(out.keypoints) == topology.n_keypoints
         raw.append(out.keypoints if same else None)
+        grasp.append(out.grasp_idx if same else None)
+        if not same:
+            pending[i] = (frame.depth, frame.depth_scale)
         if same and out.status != "lost":
             abs_mm.append(out.abs_mm)
             cd_mm.append(out.cd_mm)
@@ -132,11 +141,24 @@ def track_sequence(seq: Any, params: Any, kind: str | None, progress: bool = Tru
         raise RuntimeError(
             f"the object was never initialised in {T} frames (last note: {pipe.last_init_error or 'no motion seen'})"
         )
+
+    def frame_input(i: int) -> FrameInput:
+        depth, scale = pending[i]
+        V, F, tcp, closed = _arm_geometry(seq, i, arms)
+        return FrameInput(depth.astype(np.float32) * np.float32(scale), V, F, tcp, closed)
+
+    assert pipe.background is not None  # set at initialisation
+    filled = fill_missing(raw, grasp, topology, pipe.background,
+                          lambda: LivePipeline(params, seq.K, seq.T_world_cam, kind), frame_input)
+    pending.clear()
     N = topology.n_keypoints
     full = np.stack([r if r is not None else np.full((N, 3), np.nan) for r in raw])
     metrics: dict[str, Any] = {"frames": T, "tracked_frames": len(abs_mm)}
     metrics.update(sequence_summary(np.array(abs_mm), np.array(cd_mm)))
     metrics["ms_per_frame_median"] = float(np.median(ms))
+    metrics["backward_frames"], metrics["forward_filled_frames"] = filled.backward, filled.forward
+    if filled.ms:
+        metrics["fill_ms_per_frame_median"] = float(np.median(filled.ms))
     metrics["statuses"] = {s: statuses.count(s) for s in sorted(set(statuses))}
     if gt_mm:
         metrics["gt_rmse_mm"] = float(np.sqrt(np.mean(np.square(gt_mm))))

@@ -227,6 +227,17 @@ class LivePipeline:
             refs=refs if seg.grown else None, support=None if seg.grown else self._support,
         )
 
+    def resume(
+        self, topology: Topology, keypoints: np.ndarray, grasp_idx: np.ndarray, background: np.ndarray
+    ) -> None:
+        """Start tracking from a known state instead of initialising: keypoints (N, 3) m world of
+        ``topology``, grasp_idx (G,) int64 and a decimated background (h, w) float32 m (e.g. another
+        pass's); the next ``process`` call tracks. Used by the offline passes (``tracking.offline``)."""
+        self.reset()
+        self.tracker.resume(topology, keypoints, grasp_idx)
+        self.background = np.array(background, np.float32)
+        self._d0 = self.background
+
     def set_reference(self, depth: np.ndarray) -> None:
         """Make a decimated depth (h, w) m the reference D0 (and find the table plane in it: a 1D
         object's parts that did not move stand above it); ``process`` does this on its first frame."""

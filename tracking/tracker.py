@@ -289,6 +289,15 @@ class Tracker:
         na = len(ini.topology.anchor_idx)
         return ini, self._result(ini.keypoints, cloud, na, na)
 
+    def resume(self, topology: Topology, keypoints: np.ndarray, grasp_idx: np.ndarray) -> None:
+        """Continue from a known solution instead of initialising: keypoints (N, 3) m world of
+        ``topology``, grasp_idx (G,) int64 (no velocity yet: the next frame may run the other way in time)."""
+        self.reset()
+        self.topology = topology
+        self.keypoints = np.array(keypoints, np.float64)
+        self.grasp_idx = np.array(grasp_idx, np.int64)
+        self._history.append(self.keypoints)
+
     def step(
         self, cloud: np.ndarray, tcp: np.ndarray | None = None, gripper_closed: np.ndarray | None = None
     ) -> FrameResult:

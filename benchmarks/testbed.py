@@ -1,0 +1,223 @@
+"""``trackdeform track`` on the independent test bed (``../shared/testbed``): generate, track, score, one table.
+
+Usage: .venv/bin/python benchmarks/testbed.py [--cache DIR] [--testbed DIR] [--testbed-python PY]
+       [--set dev|variants|all] [--only NAME[,NAME]] [--list] [--json]
+
+The test bed is a second simulated station (MuJoCo physics, its own renderer, stereo depth noise) with
+its own scorer; see its README. This script
+
+1. finds it (``--testbed``, else ``../shared/testbed`` beside the repository; absent: a message, exit 0);
+2. finds its Python (``--testbed-python``, ``$TESTBED_PYTHON``, ``<cache>/venv`` or ``../tbvenv`` beside
+   the repository), else creates ``<cache>/venv`` from its ``requirements.txt``;
+3. generates the sequences that are not yet in ``<cache>/sequences`` (a ``make_sequence.py --jobs``
+   call each; a sequence is a pure function of its arguments, so a cached one is reused);
+4. runs ``trackdeform track`` on each as a lab would (rgbd.npz, arm poses, joint states, calibration and
+   the object category; never the masks or ground truth), output in ``<cache>/tracks/<name>``;
+5. scores ``3d_keypoints.npz`` with the test bed's ``score.py`` and prints one table.
+
+Columns: missing = frames with a missing keypoint (%); object / anchors / coverage / Abs / CD in mm,
+E<5 and F<10 in % of all frames (the scorer's definitions); ms/frame = the tracker's median per-frame
+time (``tracking_metrics.json``), fill ms/frame = the same for the frames tracked backwards (or
+forwards after a loss) from a tracked neighbour, wall ms/frame = the whole ``track`` command's wall time per frame
+(reading, both passes, writing).
+
+The default set (``--set all``) is the five-sequence development set plus the variants below (camera
+from the side and from above, rope lengths 0.8-1.0 m, radii 4-7 mm, colours, the three speeds, other
+seeds); generating it the first time takes ~12 min and ~2 GB, tracking and scoring it ~4 min here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parent.parent
+
+# The test bed's development set (make_sequence.py --all), by keyword set.
+DEV: list[dict[str, Any]] = [
+    dict(name="rope_medium", obj="rope", speed="medium", seconds=6, seed=1),
+    dict(name="bdlo_medium", obj="bdlo", speed="medium", seconds=6, seed=2),
+    dict(name="cloth_medium", obj="cloth", speed="medium", seconds=6, seed=3),
+    dict(name="rope_fast", obj="rope", speed="fast", seconds=5, seed=4),
+    dict(name="rope_samecolor_slow", obj="rope", speed="slow", seconds=6, seed=5, samecolor=True),
+]
+# Variants: other seeds, views, sizes, colours and speeds (camera = eye x,y,z, target x,y,z in the world, m).
+SIDE = [1.05, 0.55, 0.55, 0.45, -0.45, 0.20]
+ABOVE = [0.95, -0.45, 1.45, 0.45, -0.45, 0.10]
+VARIANTS: list[dict[str, Any]] = [
+    dict(name="rope_side_long_thin", obj="rope", speed="medium", seconds=5, seed=11, camera=SIDE, length=1.0,
+         radius=0.004, rgb=[0.15, 0.3, 0.85]),
+    dict(name="rope_above_short_thick", obj="rope", speed="fast", seconds=5, seed=12, camera=ABOVE, length=0.8,
+         radius=0.007, rgb=[0.9, 0.75, 0.1]),
+    dict(name="rope_slow_r5", obj="rope", speed="slow", seconds=6, seed=13, length=0.85, radius=0.005,
+         rgb=[0.1, 0.6, 0.2]),
+    dict(name="bdlo_above_fast", obj="bdlo", speed="fast", seconds=5, seed=2, camera=ABOVE, branch_len=0.25),
+    dict(name="bdlo_side_slow", obj="bdlo", speed="slow", seconds=6, seed=15, camera=SIDE, length=0.95,
+         radius=0.005, rgb=[0.8, 0.2, 0.6]),
+    dict(name="cloth_side_fast", obj="cloth", speed="fast", seconds=5, seed=16, camera=SIDE),
+    dict(name="cloth_above_slow", obj="cloth", speed="slow", seconds=6, seed=17, camera=ABOVE),
+]
+SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
+CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
+COLUMNS = [  # (header, scorer key or None, scale, format)
+    ("missing %", "nan_frame_fraction", 100.0, "{:.0f}"),
+    ("object mm", "gt_object_rmse_mm", 1.0, "{:.2f}"),
+    ("anchors mm", "anchor_err_mm", 1.0, "{:.1f}"),
+    ("coverage mm", "coverage_mm", 1.0, "{:.1f}"),
+    ("Abs mm", "Abs_mm", 1.0, "{:.2f}"),
+    ("E<5 %", "E<5_pct", 1.0, "{:.1f}"),
+    ("CD mm", "CD_mm", 1.0, "{:.2f}"),
+    ("F<10 %", "F<10_pct", 1.0, "{:.1f}"),
+    ("ms/frame", "ms_per_frame_median", 1.0, "{:.1f}"),
+    ("fill ms/frame", "fill_ms_per_frame_median", 1.0, "{:.1f}"),
+    ("wall ms/frame", "wall_ms_per_frame", 1.0, "{:.0f}"),
+]
+
+
+def find_testbed(arg: str | None) -> Path | None:
+    """The test bed folder: ``--testbed`` or ``../shared/testbed`` beside the repository; None when absent."""
+    d = Path(arg) if arg else REPO.parent / "shared" / "testbed"
+    if not arg and not d.is_dir():
+        d = REPO.parent.parent / "shared" / "testbed"  # a git worktree one level deeper than the clone
+    return d if (d / "make_sequence.py").is_file() and (d / "score.py").is_file() else None
+
+
+def find_python(arg: str | None, cache: Path, testbed: Path) -> Path:
+    """The test bed's interpreter; creates ``<cache>/venv`` from its requirements when none is found."""
+    for cand in (arg, os.environ.get("TESTBED_PYTHON")):
+        if cand:
+            if not Path(cand).is_file():
+                sys.exit(f"error: test bed python {cand} does not exist")
+            return Path(cand)
+    for venv in (cache / "venv", REPO.parent / "tbvenv", REPO / ".tbvenv"):
+        if (venv / "bin" / "python").is_file():
+            return venv / "bin" / "python"
+    venv = cache / "venv"
+    print(f"creating the test bed's virtualenv {venv} (pip install -r {testbed / 'requirements.txt'})",
+          file=sys.stderr)
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    subprocess.run([str(venv / "bin" / "pip"), "install", "-q", "-r", str(testbed / "requirements.txt")], check=True)
+    return venv / "bin" / "python"
+
+
+def generated(seq: Path) -> bool:
+    """Whether a sequence folder is complete (the generator writes meta.json last)."""
+    return (seq / "meta.json").is_file() and (seq / "rgbd.npz").is_file() and (seq / "gt.npz").is_file()
+
+
+def generate(py: Path, testbed: Path, jobs: list[dict[str, Any]], out: Path) -> dict[str, str]:
+    """Generate the sequences of ``jobs`` not yet in ``out``, one ``make_sequence.py --jobs`` call each (a
+    job the generator rejects, e.g. a waypoint out of reach, does not stop the others); name -> error."""
+    todo = [j for j in jobs if not generated(out / j["name"])]
+    errors: dict[str, str] = {}
+    out.mkdir(parents=True, exist_ok=True)
+    for k, job in enumerate(todo):
+        print(f"generating {job['name']} ({k + 1}/{len(todo)}, ~1-4 min) in {out}", file=sys.stderr, flush=True)
+        spec = out / f"{job['name']}.job.json"
+        spec.write_text(json.dumps([job], indent=1))
+        r = subprocess.run([str(py), str(testbed / "make_sequence.py"), "--jobs", str(spec), "--out", str(out)],
+                           capture_output=True, text=True)
+        if r.returncode != 0 or not generated(out / job["name"]):
+            errors[job["name"]] = "generation failed: " + ((r.stderr.strip().splitlines() or ["?"])[-1])
+    return errors
+
+
+def track(seq: Path, job: dict[str, Any], out: Path) -> dict[str, Any]:
+    """Run ``trackdeform track`` on one sequence; its metrics plus the command's wall time per frame."""
+    out.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(":")}
+    cmd = [sys.executable, "-m", "orchestrator.cli", "track", str(seq), "--out", str(out),
+           "--category", CATEGORY[job["obj"]], "--json"]
+    t0 = time.monotonic()
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=REPO)
+    wall = time.monotonic() - t0
+    if r.returncode != 0:
+        return {"error": (r.stderr.strip().splitlines() or ["track failed"])[-1]}
+    m = json.loads(r.stdout.strip().splitlines()[-1])
+    m["wall_ms_per_frame"] = 1e3 * wall / max(1, int(m.get("frames", 1)))
+    return m
+
+
+def score(py: Path, testbed: Path, pred: Path, seq: Path) -> dict[str, Any]:
+    """The test bed scorer's JSON for one prediction."""
+    r = subprocess.run([str(py), str(testbed / "score.py"), str(pred), str(seq), "--json"], capture_output=True,
+                       text=True)
+    if not r.stdout.strip():
+        return {"error": (r.stderr.strip().splitlines() or ["score failed"])[-1]}
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def table(rows: list[tuple[str, dict[str, Any]]]) -> str:
+    """Markdown table of the scored sequences."""
+    head = "| sequence | " + " | ".join(c[0] for c in COLUMNS) + " |"
+    lines = [head, "|" + "---|" * (len(COLUMNS) + 1)]
+    for name, r in rows:
+        if "error" in r:
+            lines.append(f"| {name} | error: {r['error']} |")
+            continue
+        cells = []
+        for _, key, scale, fmt in COLUMNS:
+            v = r.get(key)
+            cells.append("n/a" if v is None else fmt.format(scale * float(v)))
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Generate (cached), track and score the chosen test-bed sequences; print the table."""
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cache", default=str(REPO / "runs" / "testbed"), help="sequences, venv and outputs go here")
+    ap.add_argument("--testbed", help="the test bed folder (default ../shared/testbed beside the repository)")
+    ap.add_argument("--testbed-python", help="the test bed's python (default: a venv found or created)")
+    ap.add_argument("--set", choices=sorted(SETS), default="all", help="development set, variants or both")
+    ap.add_argument("--only", action="append", help="only these sequences (comma-separated names, repeatable)")
+    ap.add_argument("--list", action="store_true", help="list the sequences and exit")
+    ap.add_argument("--json", action="store_true", help="also print every row's figures as one JSON line")
+    a = ap.parse_args(argv)
+    jobs = SETS[a.set] if not a.only else SETS["all"]
+    if a.only:
+        names = {n for o in a.only for n in o.split(",") if n}
+        unknown = names - {j["name"] for j in jobs}
+        if unknown:
+            print(f"error: unknown sequence(s) {', '.join(sorted(unknown))}; --list shows them", file=sys.stderr)
+            return 2
+        jobs = [j for j in jobs if j["name"] in names]
+    if a.list:
+        for j in jobs:
+            print(json.dumps(j))
+        return 0
+    testbed = find_testbed(a.testbed)
+    if testbed is None:
+        where = a.testbed or (REPO.parent / "shared" / "testbed")
+        print(f"skipped: no test bed at {where} (make_sequence.py and score.py); pass --testbed DIR")
+        return 0
+    cache = Path(a.cache).resolve()
+    cache.mkdir(parents=True, exist_ok=True)
+    py = find_python(a.testbed_python, cache, testbed)
+    seqs = cache / "sequences"
+    failed = generate(py, testbed, jobs, seqs)
+    rows: list[tuple[str, dict[str, Any]]] = []
+    for j in jobs:
+        name = j["name"]
+        if name in failed:
+            rows.append((name, {"error": failed[name]}))
+            continue
+        out = cache / "tracks" / name
+        print(f"tracking {name} ...", file=sys.stderr, flush=True)
+        m = track(seqs / name, j, out)
+        r = m if "error" in m else {**score(py, testbed, out / "3d_keypoints.npz", seqs / name), **m}
+        rows.append((name, r))
+    print(table(rows))
+    if a.json:
+        print(json.dumps({n: {k: r.get(k) for k in ("error", *(c[1] for c in COLUMNS))} for n, r in rows}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
