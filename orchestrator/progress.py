@@ -50,3 +50,9 @@ class Progress:
             self.stream.write("\n")
             self.stream.flush()
             self._width = 0
+
+
+def bar(done: int, total: int, unit: str = "episodes", width: int = 24) -> str:
+    """A text progress bar: ``[#####-------] 5/12 episodes``."""
+    n = int(round(width * done / max(1, total)))
+    return "[" + "#" * n + "-" * (width - n) + f"] {done}/{total} {unit}"

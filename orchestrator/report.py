@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from orchestrator.progress import Progress
+from orchestrator.progress import Progress, bar
 from tdcommon.wire import edges_from_json, points_from_json
 from tdrecord.episodes import ACTIVE_SUFFIX
 
@@ -83,35 +83,23 @@ def _episode_files(session: Path) -> tuple[list[Path], list[Path]]:
     return sorted(session.glob("episode_*.mcap")), sorted(session.glob(f"*{ACTIVE_SUFFIX}"))
 
 
-def _run_key(meta: dict[str, Any]) -> tuple:
-    return (meta.get("session_started"), meta.get("plan_pass", 0), meta.get("run_index"), meta.get("object"),
-            meta.get("program"), meta.get("speed"), meta.get("repeat", 0), meta.get("attempt", 1))
-
-
 def group_runs(files: list[Path]) -> list[RunData]:
     """Episode files grouped into program runs (one attempt each) by their ``episode`` metadata, in file order."""
-    from tdrecord import read_episode_metadata
+    from tdrecord import recorded_runs
 
-    runs: dict[tuple, RunData] = {}
-    for f in files:
-        try:
-            meta = read_episode_metadata(f)
-        except Exception as e:  # an unreadable file is reported, not fatal
-            meta = {"object": "?", "program": "?", "speed": "?", "unreadable": f"{type(e).__name__}: {e}"}
-        key = _run_key(meta)
-        run = runs.get(key)
-        if run is None:
-            run = runs[key] = RunData(
-                key=key, object=str(meta.get("object", "?")), category=str(meta.get("category", "")),
-                program=str(meta.get("program", "?")), speed=str(meta.get("speed", "?")),
-                repeat=int(meta.get("repeat", 0) or 0), attempt=int(meta.get("attempt", 1) or 1),
-                plan_pass=int(meta.get("plan_pass", 0) or 0), episodes=[],
-            )
-        run.episodes.append(f)
-        run.bytes += f.stat().st_size
-        run.incomplete += int(meta.get("complete") is False)
-        run.faults += int(bool(meta.get("fault")))
-    return list(runs.values())
+    out = []
+    for rec in recorded_runs(files):
+        meta = rec.first
+        out.append(RunData(
+            key=rec.key, object=str(meta.get("object", "?")), category=str(meta.get("category", "")),
+            program=str(meta.get("program", "?")), speed=str(meta.get("speed", "?")),
+            repeat=int(meta.get("repeat", 0) or 0), attempt=int(meta.get("attempt", 1) or 1),
+            plan_pass=int(meta.get("plan_pass", 0) or 0), episodes=list(rec.episodes),
+            bytes=sum(f.stat().st_size for f in rec.episodes),
+            incomplete=sum(int(m.get("complete") is False) for m in rec.metadata),
+            faults=sum(int(bool(m.get("fault"))) for m in rec.metadata),
+        ))
+    return out
 
 
 def _camera_topics(topics: set[str]) -> tuple[str, str]:
@@ -420,11 +408,6 @@ def collection_summary(session: Path, runs: list[RunData], active: list[Path]) -
 
 
 # ---------------------------------------------------------------------- the page
-def _bar(done: int, total: int, width: int = 24) -> str:
-    n = int(round(width * done / max(1, total)))
-    return "[" + "#" * n + "-" * (width - n) + f"] {done}/{total} episodes"
-
-
 def build_report(
     session: Path,
     out: Path,
@@ -461,7 +444,7 @@ def build_report(
     run_views = []
     notes = []
     for n, run in enumerate(runs):
-        progress.update(f"{_bar(done, len(files))} | {run.label}", force=True)
+        progress.update(f"{bar(done, len(files))} | {run.label}", force=True)
         read_recorded(run)
         if run.source == "none" and track_missing:
             if config is None:
@@ -470,7 +453,7 @@ def build_report(
                 config = load_config(DEFAULT_CONFIG)
             frames = run.frames
             track_offline(run, config, lambda i, d=done, f=frames, lbl=run.label: progress.update(
-                f"{_bar(d, len(files))} | {lbl}: tracking offline, frame {i}/{f}"))
+                f"{bar(d, len(files))} | {lbl}: tracking offline, frame {i}/{f}"))
         done += len(run.episodes)
         view: dict[str, Any] = {"label": run.label, "episodes": len(run.episodes), "frames": run.frames,
                                 "tracked": len(run.t), "source": run.source, "statuses": run.statuses,
@@ -511,7 +494,7 @@ def build_report(
         run_views.append(view)
         if run is not per_object.get(run.object):  # keep only what the page still needs
             run.keypoints, run.frame_numbers, run.log_times = [], [], {}
-    progress.update(f"{_bar(done, len(files))} | writing the page", force=True)
+    progress.update(f"{bar(done, len(files))} | writing the page", force=True)
     trajectories = [{"object": o, "src": f"{IMAGES}/trajectory_{_safe(o)}.png", "run": r.label}
                     for o, r in per_object.items()]
     env = jinja2.Environment(loader=jinja2.PackageLoader("orchestrator", "templates"),
@@ -523,7 +506,7 @@ def build_report(
     )
     page = out / "report.html"
     page.write_text(html, encoding="utf-8")
-    progress.update(f"{_bar(done, len(files))} | done in {time.monotonic() - t_start:.1f} s", force=True)
+    progress.update(f"{bar(done, len(files))} | done in {time.monotonic() - t_start:.1f} s", force=True)
     progress.done()
     return page
 

@@ -5,7 +5,7 @@ reader API is re-exported here; :mod:`tdrecord.episodes`, :mod:`tdrecord.paper` 
 :mod:`tdrecord.sequence` hold the implementation.
 """
 
-from tdrecord.episodes import ACTIVE_SUFFIX, read_episode_metadata, read_episodes
+from tdrecord.episodes import ACTIVE_SUFFIX, RecordedRun, read_episode_metadata, read_episodes, recorded_runs, run_key
 from tdrecord.io import Calibration, read_calibration, read_sequence
 from tdrecord.paper import (
     ReferenceKeypoints,
@@ -17,7 +17,7 @@ from tdrecord.paper import (
 from tdrecord.sequence import DatasetError, FrameSource, Sequence, nearest_index
 
 __all__ = [
-    "ACTIVE_SUFFIX", "Calibration", "DatasetError", "FrameSource", "ReferenceKeypoints", "Sequence", "nearest_index",
-    "read_calibration", "read_episode_metadata", "read_episodes", "read_paper_layout", "read_reference_npz",
-    "read_sequence", "write_paper_layout", "write_reference_npz",
+    "ACTIVE_SUFFIX", "Calibration", "DatasetError", "FrameSource", "RecordedRun", "ReferenceKeypoints", "Sequence",
+    "nearest_index", "read_calibration", "read_episode_metadata", "read_episodes", "read_paper_layout",
+    "read_reference_npz", "read_sequence", "recorded_runs", "run_key", "write_paper_layout", "write_reference_npz",
 ]

@@ -375,3 +375,39 @@ def read_episodes(path: str | Path, camera_id: str | None = None) -> Sequence:
     )
 
 
+@dataclass
+class RecordedRun:
+    """The episode files of one program run (one attempt), in recording order, with each file's metadata."""
+
+    key: tuple
+    episodes: list[Path]
+    metadata: list[dict[str, Any]]
+
+    @property
+    def first(self) -> dict[str, Any]:
+        """The first episode's metadata: what the run is (object, program, speed, repeat, attempt)."""
+        return self.metadata[0]
+
+
+def run_key(meta: dict[str, Any]) -> tuple:
+    """What tells one program run (one attempt) from another in the ``episode`` metadata."""
+    return (meta.get("session_started"), meta.get("plan_pass", 0), meta.get("run_index"), meta.get("object"),
+            meta.get("program"), meta.get("speed"), meta.get("repeat", 0), meta.get("attempt", 1))
+
+
+def recorded_runs(files: Iterable[Path]) -> list[RecordedRun]:
+    """Episode files grouped into program runs by their ``episode`` metadata, in file order.
+
+    A file whose metadata cannot be read is its own run, with ``unreadable`` in its metadata.
+    """
+    runs: dict[tuple, RecordedRun] = {}
+    for f in files:
+        try:
+            meta = read_episode_metadata(f)
+        except Exception as e:  # reported by the caller, never fatal here
+            meta = {"object": "?", "program": "?", "speed": "?", "unreadable": f"{type(e).__name__}: {e}"}
+        key = run_key(meta) if "unreadable" not in meta else ("unreadable", str(f))
+        run = runs.setdefault(key, RecordedRun(key, [], []))
+        run.episodes.append(Path(f))
+        run.metadata.append(meta)
+    return list(runs.values())
