@@ -126,3 +126,18 @@ class Bus:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def open_client(bus: BusConfig, station: str, endpoints: list[str], timeout: float = 0.0) -> Bus:
+    """A connect-only (client) Bus to ``endpoints``, retried every 0.5 s for ``timeout`` s (the session may be
+    starting); raises RuntimeError naming the endpoints when none answers."""
+    import time
+
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return Bus(bus, station, listen=False, connect=endpoints)
+        except RuntimeError:
+            if time.monotonic() >= deadline:
+                raise
+            time.sleep(0.5)

@@ -15,12 +15,12 @@ CTL_COMMANDS = ("pause", "resume", "stop", "skip")
 
 def _client(args: argparse.Namespace) -> Any:
     """A client Bus to the session named by ``--config`` / ``--station`` / ``--connect``; raises RuntimeError."""
-    from orchestrator.bus import Bus, local_endpoints
+    from orchestrator.bus import local_endpoints, open_client
     from orchestrator.config import load_config
 
     config = load_config(args.config)
     endpoints = args.connect or config.bus.connect or local_endpoints(config.bus.listen)
-    bus = Bus(config.bus, args.station or config.station.name, listen=False, connect=endpoints)
+    bus = open_client(config.bus, args.station or config.station.name, endpoints, args.timeout)
     bus.endpoints = endpoints
     return bus
 
