@@ -204,6 +204,11 @@ class Session:
             self.supervisor = WorkerSupervisor(self.config, self.out_dir, self.bus, self.session_id, self.gate,
                                                report=monitor.incident)
             self.supervisor.start()
+            timeout = self.config.tracking.worker_start_timeout
+            self.progress.message("waiting for the tracking worker")
+            if not self.supervisor.wait_ready(timeout, self.stop_event) and not self.stop_event.is_set():
+                monitor.incident("worker_not_ready", f"the tracking worker was not up after {timeout:.0f} s; "
+                                 "recording without live keypoints until it is")
 
     def _finish(self, journal: Journal, t_wall: float) -> None:
         """Finish the episodes, journal the runs whose files are now final, fill and write the summary."""

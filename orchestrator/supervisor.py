@@ -84,6 +84,15 @@ class WorkerSupervisor:
         if self.proc is not None:
             self.proc.stop()
 
+    def wait_ready(self, timeout: float, stop: threading.Event) -> bool:
+        """Wait up to ``timeout`` s (or until ``stop``) for the worker's liveliness token; True when it is up."""
+        deadline = time.monotonic() + timeout
+        while not self._alive():
+            if stop.is_set() or time.monotonic() > deadline or self.given_up:
+                return False
+            stop.wait(0.1)
+        return True
+
     def status(self) -> dict[str, Any]:
         """Worker facts for the health message."""
         now = time.monotonic()
