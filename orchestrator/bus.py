@@ -1,4 +1,5 @@
-"""The zenoh session: peer mode, explicit endpoints, multicast scouting off unless asked.
+"""The zenoh session: the daemon in router mode (it routes between the tracking worker and any other
+subscriber), processes that only connect in client mode; explicit endpoints, multicast scouting off unless asked.
 
 Readers of frames use a ring channel (newest wins) so a slow subscriber never builds up
 latency; subscribers are polled with ``try_recv`` because a thread blocked in ``recv`` makes
@@ -19,11 +20,15 @@ log = logging.getLogger(__name__)
 
 
 def zenoh_config(bus: BusConfig, *, listen: bool = True, connect: list[str] | None = None) -> Any:
-    """A ``zenoh.Config`` for ``bus``; ``listen=False`` for a process that only connects."""
+    """A ``zenoh.Config`` for ``bus``; ``listen=False`` for a process that only connects.
+
+    A process that only connects is a client: a router (or a peer) forwards it everything it subscribes
+    to, whereas a peer with gossip off only hears the peers it connected to itself.
+    """
     import zenoh
 
     c = zenoh.Config()
-    c.insert_json5("mode", json.dumps(bus.mode))
+    c.insert_json5("mode", json.dumps(bus.mode if listen else "client"))
     c.insert_json5("scouting/multicast/enabled", json.dumps(bus.multicast_scouting))
     c.insert_json5("scouting/gossip/enabled", json.dumps(bus.multicast_scouting))
     c.insert_json5("listen/endpoints", json.dumps(bus.listen if listen else []))
@@ -52,7 +57,7 @@ class Bus:
                 f"connect={bus.connect if connect is None else connect}): {e}"
             ) from None
         self._publishers: dict[str, Any] = {}
-        self._subscribers: list[Any] = []
+        self._subscribers: list[Any] = []  # subscribers, queryables, liveliness tokens: undeclared on close
         self._lock = threading.Lock()
 
     def key(self, *parts: str) -> str:
@@ -81,6 +86,29 @@ class Bus:
         self._subscribers.append(sub)
         return sub
 
+    def queryable(self, key: str, handler: Callable[[Any], None]) -> Any:
+        """Answer gets on ``key`` with ``handler(query)`` (it calls ``query.reply(key, payload)``)."""
+        q = self.session.declare_queryable(key, handler)
+        self._subscribers.append(q)
+        return q
+
+    def get(self, key: str, payload: bytes | None = None, timeout: float = 2.0) -> list[bytes]:
+        """The payloads of every reply to a get on ``key`` (waits at most ``timeout`` s); errors are left out."""
+        replies = self.session.get(key, payload=payload, timeout=timeout)
+        return [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
+
+    def declare_token(self, key: str) -> Any:
+        """A liveliness token on ``key``: it disappears for every subscriber when this process dies."""
+        tok = self.session.liveliness().declare_token(key)
+        self._subscribers.append(tok)
+        return tok
+
+    def watch_liveliness(self, key: str, callback: Callable[[Any], None]) -> Any:
+        """Liveliness subscriber on ``key`` (with the tokens alive now): samples of kind PUT (up) / DELETE (gone)."""
+        sub = self.session.liveliness().declare_subscriber(key, callback, history=True)
+        self._subscribers.append(sub)
+        return sub
+
     def close(self) -> None:
         """Undeclare everything and close the session (idempotent)."""
         for ent in [*self._subscribers, *self._publishers.values()]:
@@ -98,3 +126,18 @@ class Bus:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def open_client(bus: BusConfig, station: str, endpoints: list[str], timeout: float = 0.0) -> Bus:
+    """A connect-only (client) Bus to ``endpoints``, retried every 0.5 s for ``timeout`` s (the session may be
+    starting); raises RuntimeError naming the endpoints when none answers."""
+    import time
+
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return Bus(bus, station, listen=False, connect=endpoints)
+        except RuntimeError:
+            if time.monotonic() >= deadline:
+                raise
+            time.sleep(0.5)

@@ -13,6 +13,7 @@ import logging
 import math
 import shutil
 import threading
+import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +26,8 @@ from drivers.clock import Clock
 from orchestrator import __version__
 from orchestrator.bus import Bus
 from orchestrator.config import Config
+from orchestrator.health import SessionMonitor
+from orchestrator.live import KeypointGate
 from orchestrator.plan import RunItem
 from orchestrator.programs import PlannedMotion, ProgramRejected, plan_motion
 from orchestrator.progress import Progress
@@ -54,6 +57,8 @@ class EpisodeStream:
         self.episode_open = False
         self.last_frame_number: int | None = None
         self.run_info: dict[str, Any] = {}  # what is being recorded, sent with every frame on the bus
+        self.gate: KeypointGate | None = None  # checks live keypoints and counts tracking gaps (with a bus)
+        self.monitor: SessionMonitor | None = None  # announces runs; health
         self._frame_key = bus.key("cam", camera_id, "frame") if bus is not None else ""
         self._state_key = bus.key("arms", "state") if bus is not None else ""
 
@@ -80,6 +85,10 @@ class EpisodeStream:
         meta: dict[str, Any] = {"complete": complete, "fault": fault}  # every episode has both keys
         if station.sim is not None:
             meta.update(station.sim.episode_facts())
+        if self.gate is not None:  # keypoints received by now; the worker runs a few frames behind
+            meta["tracking"] = report = self.gate.episode_report()
+            self.summary.tracking_gaps += report["gaps"]
+            self.summary.tracking_gap_frames += report["gap_frames"]
         self.recorder.close_episode(meta)
         self.episode_open = False
 
@@ -90,8 +99,18 @@ class EpisodeStream:
         self.last_frame_number = frame.frame_number
         self.summary.frames_captured += 1
         self.recorder.frame(frame, station.T_world_cam)
+        if self.gate is not None:
+            self.gate.frame(frame.frame_number, frame.device_stamp)
         if self.bus is not None:
             self.bus.put(self._frame_key, encode_frame(frame, station.T_world_cam, station.camera.id, self.run_info))
+
+    def begin_run(self, run_id: str, info: dict[str, Any], label: str) -> None:
+        """Frames from now on belong to run ``run_id``: announced on the bus (the tracker follows it)."""
+        self.run_info = {**info, "run_id": run_id}
+        if self.gate is not None:
+            self.gate.begin_run(run_id)
+        if self.monitor is not None:
+            self.monitor.announce_run(run_id, info, label)
 
     def sample_states(self, station: Station) -> None:
         """Sample both arms once; record and publish the ``arms/state`` message."""
@@ -110,6 +129,14 @@ def next_episode_index(out_dir: Path) -> int:
         if number.isdigit():
             idx.append(int(number))
     return max(idx) + 1 if idx else 0
+
+
+class RunPaused(Exception):
+    """``ctl pause`` at an episode boundary: the arms stop, the run continues from its waypoint on resume."""
+
+
+class RunSkipped(Exception):
+    """``ctl skip``: the run ends now, journaled as skipped."""
 
 
 @dataclass
@@ -137,6 +164,7 @@ class RunContext:
     max_seconds: float | None
     state_rate: float
     run_meta: dict[str, Any]
+    control: SessionMonitor | None = None  # pause / skip requests, state, where the run is
 
 
 class RunCapture:
@@ -147,11 +175,12 @@ class RunCapture:
         self.item = item
         self.station = station
         self.episodes: list[Path] = []  # the files this run opened, in order
+        self.run_id = uuid.uuid4().hex[:12]  # in the run announcement and every keypoint message of this run
 
     def run(self, retries: int = 2) -> tuple[str, str | None]:
         """Record the run; after a recoverable fault, recover and retry the faulted segment at slow speed.
 
-        Returns ("done" | "stopped" | "failed", the failure message or None).
+        Returns ("done" | "stopped" | "skipped" | "failed", the failure or skip message or None).
         """
         ctx, item, station = self.ctx, self.item, self.station
         resume = Resume()
@@ -161,6 +190,20 @@ class RunCapture:
                 complete = self._record(resume)
                 ctx.summary.runs_done += 1
                 return ("done", None) if complete else ("stopped", None)
+            except RunSkipped:
+                station.stop_arms()
+                ctx.summary.runs_skipped.append(item.label)
+                return "skipped", "skipped by `trackdeform ctl skip`"
+            except RunPaused:
+                station.stop_arms()
+                assert ctx.control is not None
+                ctx.control.hold()
+                if ctx.stop_event.is_set():
+                    return "stopped", None
+                if ctx.control.take_skip():
+                    ctx.summary.runs_skipped.append(item.label)
+                    return "skipped", "skipped by `trackdeform ctl skip` while paused"
+                ctx.progress.message(f"resumed; continuing from waypoint {resume.waypoint} (approach at slow speed)")
             except DeviceError as e:
                 msg = f"{item.label}: device fault: {e}"
                 log.warning(msg)
@@ -171,6 +214,8 @@ class RunCapture:
                     if not e.recoverable:
                         station.broken = str(e)
                     return "failed", msg
+                if ctx.control is not None:
+                    ctx.control.set_state("recovering", msg)
                 try:
                     station.recover()
                 except DeviceError as e2:
@@ -178,6 +223,9 @@ class RunCapture:
                     station.broken = f"recovery failed: {e2}"
                     return "failed", f"{msg}; recovery failed: {e2}"
                 ctx.summary.faults_recovered += 1
+                if ctx.control is not None:
+                    ctx.control.incident("device_fault", f"{msg}; recovered")
+                    ctx.control.set_state("running")
                 ctx.progress.message(f"recovered; retrying from waypoint {resume.waypoint} (approach at slow speed)")
                 attempt += 1
             except ProgramRejected as e:
@@ -207,21 +255,28 @@ class RunCapture:
         base_meta = self._base_metadata(motion)
         base_meta["start_waypoint"] = resume.waypoint
         stream.last_frame_number = None  # frames the camera made between runs were not meant to be recorded
-        stream.run_info = {
+        stream.begin_run(self.run_id, {
             "object": item.object.name, "category": item.object.category, "program": item.program,
             "speed": item.speed, "run_index": item.index, "n_keypoints": item.object.n_keypoints,
-        }
+        }, item.label)
+        control = ctx.control
         poller = None if sim_time else StatePoller(lambda: stream.sample_states(station), ctx.state_rate)
         next_state_t = clock.now()
         try:
             if poller:
                 poller.__enter__()
             for k in range(total):
+                if control is not None:
+                    control.at_frame(k, total, stream.next_index - 1)
+                    if control.take_skip():
+                        raise RunSkipped
                 if k % per_episode == 0:
                     if chunk >= 0:
                         stream.close_episode(station, episode_frames == per_episode)
                     if ctx.should_stop():
                         break
+                    if k > 0 and control is not None and control.pause_requested():
+                        raise RunPaused
                     chunk += 1
                     episode_frames = 0
                     path = stream.open_episode({**base_meta, "chunk_index": chunk})
@@ -265,8 +320,11 @@ class RunCapture:
                 for arm in station.arms.values():
                     arm.stop()
             return frames == total
-        except DeviceError:
-            stream.close_episode(station, False, fault=True)
+        except RunSkipped:
+            stream.close_episode(station, False)
+            raise
+        except (DeviceError, RunPaused) as e:
+            stream.close_episode(station, False, fault=isinstance(e, DeviceError))  # a pause closed it already
             resume.chunk = chunk + 1
             if t_start is not None:
                 seg = int(motion.timed.segment_at(np.array([clock.now() - t_start]))[0])

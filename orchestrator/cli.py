@@ -60,7 +60,8 @@ def run_session(
     quiet: bool = False,
     fresh: bool = False,
 ) -> int:
-    """Open the folder's journal (resume), the bus, the tracking worker if asked; run a session; print the summary."""
+    """Open the folder's journal (resume) and the bus; run a session (it supervises the tracking worker if asked);
+    print the summary."""
     from drivers.clock import RealClock, SimClock
     from orchestrator.bus import Bus
     from orchestrator.journal import Journal, JournalError
@@ -80,7 +81,6 @@ def run_session(
                          "its episodes stay and numbering continues")
     clock = SimClock() if config.clock == "sim" else RealClock()
     bus = None
-    worker = None
     try:
         if config.bus.enabled:
             try:
@@ -88,17 +88,12 @@ def run_session(
             except RuntimeError as e:
                 print(f"error: {e}\nhint: another session may be using the port; pass --port", file=sys.stderr)
                 return 2
-        if with_worker and bus is not None and config.tracking.enabled:
-            from orchestrator.workerproc import start_worker
-
-            worker = start_worker(config, out_dir)
         progress.message(f"recording to {out_dir}")
-        session = Session(config, out_dir, clock, bus=bus, progress=progress, stop_event=stop, journal=journal)
+        session = Session(config, out_dir, clock, bus=bus, progress=progress, stop_event=stop, journal=journal,
+                          with_worker=with_worker and bus is not None and config.tracking.enabled)
         summary = session.run(max_seconds=max_seconds, loop=loop)
     finally:
         journal.close()  # the session closes it too; this covers a failure before it ran
-        if worker is not None:
-            worker.stop()
         if bus is not None:
             bus.close()
     print(summary.text())
@@ -246,7 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
     rc.set_defaults(func=cmd_recover)
 
     for module in ("orchestrator.cli_program", "orchestrator.cli_tracking", "orchestrator.cli_devices",
-                   "orchestrator.report", "orchestrator.cli_eval", "orchestrator.export"):
+                   "orchestrator.cli_live", "orchestrator.report", "orchestrator.cli_eval", "orchestrator.export"):
         try:
             mod = __import__(module, fromlist=["register"])
         except ModuleNotFoundError as e:

@@ -40,7 +40,7 @@ def format_keypoints_line(msg: dict[str, Any]) -> str:
 
 def cmd_watch(args: argparse.Namespace) -> int:
     """Print live keypoint messages as they arrive (Ctrl-C to stop)."""
-    from orchestrator.bus import Bus, local_endpoints
+    from orchestrator.bus import local_endpoints, open_client
     from orchestrator.config import load_config
     from tdcommon.wire import decode_json
 
@@ -49,11 +49,17 @@ def cmd_watch(args: argparse.Namespace) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    bus = Bus(config.bus, config.station.name, listen=False, connect=endpoints)
+    deadline = (time.monotonic() + args.seconds) if args.seconds else None
+    try:  # the session may still be starting: keep trying to reach it (for --seconds, or until Ctrl-C)
+        bus = open_client(config.bus, args.station or config.station.name, endpoints,
+                          args.seconds if args.seconds else 365 * 86400.0)
+    except RuntimeError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     try:
         sub = bus.subscribe(bus.key("keypoints"), ring=64)
         print(f"watching {bus.key('keypoints')} via {endpoints}", file=sys.stderr)
-        seen, deadline = 0, (time.monotonic() + args.seconds) if args.seconds else None
+        seen = 0
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
             s = sub.try_recv()
             if s is None:
@@ -217,6 +223,7 @@ def register(sub: Any) -> None:
     wa = sub.add_parser("watch", help="print live keypoints from the bus")
     wa.add_argument("--config", default=str(DEFAULT_CONFIG))
     wa.add_argument("--connect", action="append", help="zenoh endpoint (default: the config's listen endpoints)")
+    wa.add_argument("--station", help="station name (default: the config's)")
     wa.add_argument("--json", action="store_true", help="print each message as JSON")
     wa.add_argument("--count", type=int, help="stop after this many messages")
     wa.add_argument("--seconds", type=float, help="stop after this long")

@@ -105,6 +105,17 @@ class TrackingConfig(StrictModel):
     use_cloud_projection: bool = Field(True, description="ablation: projection onto the cloud")
     live_window: int = Field(3, ge=1, le=31, description="causal moving-average window, frames")
     final_window: int = Field(5, ge=1, le=31, description="symmetric moving-average window, frames (odd)")
+    worker_start_timeout: float = Field(
+        90.0, gt=0.0, le=3600.0, description="s a started worker may take to declare its liveliness token")
+    worker_max_lag: float = Field(
+        15.0, gt=0.0, le=3600.0,
+        description="s of camera time the worker's newest keypoints may trail the newest frame before a restart")
+    worker_restart_backoff: float = Field(1.0, gt=0.0, le=600.0, description="first restart delay, s; doubles")
+    worker_restart_backoff_max: float = Field(30.0, gt=0.0, le=3600.0, description="longest restart delay, s")
+    worker_max_restarts: int = Field(20, ge=0, le=100000, description="restarts per session before giving up")
+    gap_seconds: float = Field(
+        1.0, gt=0.0, le=600.0,
+        description="frames without keypoints for at least this long (camera time, s) count as a tracking gap")
 
     @field_validator("final_window")
     @classmethod
@@ -115,14 +126,18 @@ class TrackingConfig(StrictModel):
 
 
 class BusConfig(StrictModel):
-    """The zenoh session: peer mode on explicit endpoints, multicast scouting off by default."""
+    """The zenoh session: the daemon a router on explicit endpoints, multicast scouting off by default."""
 
     enabled: bool = True
     prefix: str = Field("trackdeform", pattern=r"^[A-Za-z0-9_\-/]+$")
-    mode: Literal["peer", "client"] = "peer"
+    mode: Literal["router", "peer", "client"] = Field(
+        "router", description="the daemon's zenoh mode: 'router' routes the worker's keypoints to every client; "
+        "'client' or 'peer' when it connects to a separate zenohd router. Processes that only connect "
+        "(worker, watch, status, ctl) are clients.")
     listen: list[str] = Field(default=["tcp/127.0.0.1:7447"], description="zenoh endpoints to listen on")
     connect: list[str] = Field(default=[], description="zenoh endpoints (peers or a zenohd router)")
     multicast_scouting: bool = False
+    health_period: float = Field(1.0, gt=0.0, le=60.0, description="s between <prefix>/<station>/health messages")
 
     @field_validator("listen", "connect")
     @classmethod

@@ -9,7 +9,7 @@ Channels (Foxglove schemas where one fits, so a file opens in Foxglove):
 - ``/cam/<id>/frame_info``  JSON {frame_number, device_stamp, host_stamp, color_keyframe}
   (every JSON channel has a JSON Schema with its properties: tdrecord.channels)
 - ``/arms/state``  JSON (see tdcommon.wire);  ``/tf``  foxglove.FrameTransforms (world -> cam, TCPs)
-- ``/keypoints``  JSON (trackdeform.Keypoints/1, exact arrays);  ``/keypoints/scene``  foxglove.SceneUpdate
+- ``/keypoints``  JSON (trackdeform.Keypoints: the live message, points as {x, y, z});  ``/keypoints/scene``  foxglove.SceneUpdate
 - ``/ground_truth/keypoints``  JSON (mock mode)
 
 and a metadata record ``episode`` whose values are JSON strings. Leftover ``.active`` files

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+import uuid
 from collections.abc import Callable
 from itertools import groupby
 from pathlib import Path
@@ -21,13 +22,15 @@ from orchestrator import __version__
 from orchestrator.bus import Bus
 from orchestrator.capture import EpisodeStream, RunCapture, RunContext
 from orchestrator.config import Config
+from orchestrator.health import SessionMonitor
 from orchestrator.journal import Journal, RunKey, now_iso, record_key, run_key
+from orchestrator.live import KeypointGate
 from orchestrator.plan import RunItem, build_plan
 from orchestrator.progress import Progress
 from orchestrator.recorder import Recorder, recover_active
 from orchestrator.station import Station
 from orchestrator.summary import SessionSummary
-from tdcommon.wire import decode_json
+from orchestrator.supervisor import WorkerSupervisor
 
 __all__ = ["Session", "SessionSummary", "Station"]
 
@@ -49,6 +52,7 @@ class Session:
         state_rate: float = 250.0,
         on_station: Callable[[Station], None] | None = None,
         journal: Journal | None = None,
+        with_worker: bool = False,
     ) -> None:
         self.config = config
         self.out_dir = Path(out_dir)
@@ -70,6 +74,12 @@ class Session:
         self._attempts: dict[RunKey, int] = {}
         self._pending: list[tuple[dict[str, Any], list[Path]]] = []  # "done" records waiting for their files
         self._done_keys: set[RunKey] = set()
+        self.with_worker = with_worker  # start and supervise the tracking worker (needs the bus)
+        self.session_id = uuid.uuid4().hex[:16]  # in the run announcements; keypoints must carry it
+        self.monitor: SessionMonitor | None = None
+        self.gate: KeypointGate | None = None
+        self.supervisor: WorkerSupervisor | None = None
+        self._runs_done_here = 0
 
     # ------------------------------------------------------------------ public
     def run(self, max_seconds: float | None = None, loop: bool = False) -> SessionSummary:
@@ -85,8 +95,13 @@ class Session:
         if journal is None or journal.closed:
             journal = self._journal = Journal.open(self.out_dir, self.config)
         try:
+            monitor = self._start_monitor(max_seconds)
+            if any(self.out_dir.glob("*.mcap.active")):
+                monitor.set_state("recovering", "unfinished episodes of an earlier session")
             for path, outcome in recover_active(self.out_dir):
                 self.progress.message(f"found an unfinished episode from an earlier run: {path.name}: {outcome}")
+                monitor.incident("recovered_episode", f"{path.name}: {outcome}")
+            monitor.set_state("initialising")
             cam = self.config.station.camera
             out = self.config.output
             self._recorder = Recorder(cam.id, out.compression, color=out.color, depth=out.depth)
@@ -95,8 +110,8 @@ class Session:
                 min_free_gb=out.min_free_gb, stop_event=self.stop_event,
                 before_open=lambda: self._flush_pending(final=False),
             )
-            if self.bus is not None:
-                self.bus.subscribe(self.bus.key("keypoints"), callback=self._on_keypoints)
+            self._stream.monitor = monitor
+            self._start_tracking(cam.fps)
             items = build_plan(self.config.plan)
             self._run_plan(items, journal, loop)
         finally:
@@ -160,9 +175,48 @@ class Session:
         self._pass += 1
         self._attempts, self._done_keys = {}, set()
 
+    def _start_monitor(self, max_seconds: float | None) -> SessionMonitor:
+        """State, health and control (``orchestrator.health``); ``events.jsonl`` in the output folder."""
+        planned = len(build_plan(self.config.plan))
+        self.monitor = SessionMonitor(
+            self.out_dir, self.summary, self.stop_event, bus=self.bus, session_id=self.session_id,
+            period=self.config.bus.health_period, min_free_gb=self.config.output.min_free_gb,
+            progress=lambda: {"runs_done": len(self._done_keys), "runs_planned": planned, "plan_pass": self._pass,
+                              "runs_done_here": self._runs_done_here},
+            worker=lambda: self.supervisor.status() if self.supervisor is not None else None,
+            keypoints=lambda: {"recorded": self._recorder.keypoints_written if self._recorder else 0,
+                               "rejected": dict(self.gate.rejected.counts) if self.gate else {}},
+        )
+        self.monitor.max_seconds = max_seconds
+        self.monitor.start()
+        return self.monitor
+
+    def _start_tracking(self, fps: float) -> None:
+        """With a bus and tracking on: check incoming keypoints; with ``with_worker``, start and supervise it."""
+        if self.bus is None or not self.config.tracking.enabled:
+            return
+        monitor = self.monitor
+        assert monitor is not None and self._stream is not None
+        self.gate = KeypointGate(self.session_id, fps, self.config.tracking.gap_seconds)
+        self.gate.rejected.on_first = lambda kind, detail: monitor.incident("keypoints_rejected", f"{kind}: {detail}")
+        self._stream.gate = self.gate
+        self.bus.subscribe(self.bus.key("keypoints"), callback=self._on_keypoints)
+        if self.with_worker:
+            self.supervisor = WorkerSupervisor(self.config, self.out_dir, self.bus, self.session_id, self.gate,
+                                               report=monitor.incident)
+            self.supervisor.start()
+            timeout = self.config.tracking.worker_start_timeout
+            self.progress.message("waiting for the tracking worker")
+            if not self.supervisor.wait_ready(timeout, self.stop_event) and not self.stop_event.is_set():
+                monitor.incident("worker_not_ready", f"the tracking worker was not up after {timeout:.0f} s; "
+                                 "recording without live keypoints until it is")
+
     def _finish(self, journal: Journal, t_wall: float) -> None:
         """Finish the episodes, journal the runs whose files are now final, fill and write the summary."""
+        monitor = self.monitor
         try:
+            if monitor is not None and self.stop_event.is_set():
+                monitor.set_state("stopping", self.summary.stopped_early or "stop requested")
             if self._recorder is not None:
                 self._recorder.stop()
                 self._flush_pending(final=True)
@@ -171,6 +225,15 @@ class Session:
                 self.summary.errors.extend(self._recorder.errors)
         finally:
             journal.close()
+            if self.supervisor is not None:
+                self.supervisor.stop()
+                self.summary.worker_restarts = self.supervisor.restarts
+                if self.supervisor.given_up:
+                    self.summary.errors.append(self.supervisor.given_up)
+            if self.gate is not None:
+                self.summary.keypoints_rejected = dict(self.gate.rejected.counts)
+            if monitor is not None:
+                monitor.close("failed" if self.summary.runs_failed or self.summary.errors else "done")
         planned = {run_key(it) for it in build_plan(self.config.plan)}
         self.summary.plan_runs_done = len(self._done_keys & planned)
         self.summary.plan_pass = self._pass
@@ -188,20 +251,23 @@ class Session:
         return False
 
     def _on_keypoints(self, sample: Any) -> None:
-        try:
-            msg = decode_json(sample.payload.to_bytes())
-        except Exception as e:
-            log.warning("ignored a malformed keypoint message: %s", e)
+        """Record a keypoint message that passes the gate (checked, this session, a run and frame it recorded)."""
+        if self.gate is None or self._recorder is None:
             return
-        if self._recorder is not None:
+        msg = self.gate.accept(sample.payload.to_bytes())
+        if msg is not None:
             self._recorder.keypoints(msg)
 
     def _run_object(self, items: list[RunItem]) -> None:
         obj = items[0].object
         station = Station(self.config, obj, self.clock)
+        if self.monitor is not None:
+            self.monitor.set_state("initialising", f"connecting the station for {obj.name}")
         try:
             station.connect()
         except DeviceError as e:
+            if self.monitor is not None:
+                self.monitor.incident("station_not_ready", f"{obj.name}: {e}")
             self.summary.errors.append(f"{obj.name}: station not ready: {e}")
             self.progress.message(f"error: {obj.name}: {e}")
             station.close()
@@ -227,6 +293,11 @@ class Session:
         """Run an item between a ``start`` and a ``run`` journal record (none when a stop cuts it short)."""
         key = run_key(item)
         self._flush_pending(final=False)
+        monitor = self.monitor
+        if monitor is not None and monitor.pause_requested():  # a pause asked for at the end of the last run
+            monitor.hold()
+            if self._should_stop():
+                return
         attempt = self._attempts[key] = self._attempts.get(key, 0) + 1
         assert self._journal is not None and self._stream is not None
         self._journal.run_started(key, plan_pass=self._pass, attempt=attempt, session=self._session_index,
@@ -240,11 +311,24 @@ class Session:
                 "plan_pass": self._pass,
                 "session_started": self._session_started,  # UTC: tells a re-run's episodes from the cut-short ones
             },
+            control=monitor,
         )
         capture = RunCapture(ctx, item, station)
+        if monitor is not None:
+            monitor.set_state("running", item.label)
         t0 = time.monotonic()
         outcome, reason = capture.run()
         episodes, wall = list(capture.episodes), time.monotonic() - t0
+        self._stream.begin_run("", {}, "")  # between runs: the tracker holds
+        if monitor is not None:
+            if outcome == "failed":
+                monitor.incident("run_failed", reason or item.label)
+            elif outcome == "skipped":
+                monitor.incident("run_skipped", f"{item.label}: {reason}")
+            if not self.stop_event.is_set():
+                monitor.set_state("idle", f"{item.label}: {outcome}")
+        if outcome == "done":
+            self._runs_done_here += 1
         if outcome == "stopped":
             self.summary.runs_cut_short.append(
                 f"{item.label}: stopped after {len(episodes)} episode(s); runs again from its start on resume"

@@ -19,6 +19,12 @@ class SessionSummary:
     frames_dropped: int = 0
     state_samples: int = 0
     keypoints_recorded: int = 0
+    keypoints_rejected: dict[str, int] = field(default_factory=dict)  # by kind: not recorded (live.KeypointGate)
+    tracking_gaps: int = 0  # stretches >= tracking.gap_seconds of frames without keypoints, over the episodes
+    tracking_gap_frames: int = 0
+    worker_restarts: int = 0
+    incidents: list[str] = field(default_factory=list)  # "time kind: message", also in events.jsonl
+    runs_skipped: list[str] = field(default_factory=list)  # by `trackdeform ctl skip`
     runs_done: int = 0
     runs_failed: list[str] = field(default_factory=list)
     runs_cut_short: list[str] = field(default_factory=list)  # counted in runs_done; not journaled, so re-run
@@ -48,7 +54,10 @@ class SessionSummary:
             f"frames captured  : {self.frames_captured}",
             f"frames dropped   : {self.frames_dropped}",
             f"joint states     : {self.state_samples}",
-            f"keypoint sets    : {self.keypoints_recorded}",
+            f"keypoint sets    : {self.keypoints_recorded}"
+            + (f" ({sum(self.keypoints_rejected.values())} rejected: "
+               + ", ".join(f"{k} {n}" for k, n in sorted(self.keypoints_rejected.items())) + ")"
+               if self.keypoints_rejected else ""),
             f"program runs     : {self.runs_done} done, {len(self.runs_failed)} failed"
             + (f" ({len(self.runs_cut_short)} of the done cut short by the stop: re-run from the start on resume)"
                if self.runs_cut_short else ""),
@@ -64,6 +73,14 @@ class SessionSummary:
             lines.append(f"plan progress    : {self.plan_runs_done} of {self.runs_planned} runs done{pass_txt}")
         for label in self.runs_cut_short:
             lines.append(f"cut short        : {label}")
+        if self.keypoints_recorded or self.tracking_gaps:
+            lines.append(f"tracking gaps    : {self.tracking_gaps} ({self.tracking_gap_frames} frames in them)")
+        if self.worker_restarts:
+            lines.append(f"worker restarts  : {self.worker_restarts}")
+        for label in self.runs_skipped:
+            lines.append(f"skipped          : {label}")
+        for inc in self.incidents[-10:]:
+            lines.append(f"incident         : {inc}")
         if self.faults_recovered:
             lines.append(f"faults recovered : {self.faults_recovered}")
         if self.stopped_early:

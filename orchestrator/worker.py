@@ -1,16 +1,23 @@
 """The tracking worker: frames in over zenoh (ring channel, newest wins), live keypoints out.
 
-The only module of ``tracking/`` that touches zenoh and the configuration: it subscribes to
-``<prefix>/<station>/cam/<id>/frame`` and ``arms/state``, runs :class:`tracking.pipeline.LivePipeline`
-and publishes ``<prefix>/<station>/keypoints`` (JSON, see ``tdcommon.wire.encode_keypoints``).
+It subscribes to ``<prefix>/<station>/cam/<id>/frame``, ``arms/state`` and the session's run
+announcement ``session/run``, runs :class:`tracking.pipeline.LivePipeline` and publishes
+``<prefix>/<station>/keypoints`` (JSON, see ``tdcommon.wire.encode_keypoints``) stamped with the
+announced session and run ids. It starts a new tracker only when the session announces another run
+(never on a frame's own header), declares the liveliness token ``worker/alive/<host>-<pid>`` once it
+is ready, and, started by a session, dies with it (``PR_SET_PDEATHSIG`` and a parent-pid check).
 Run it as ``trackdeform worker CONFIG`` or ``python -m orchestrator.worker CONFIG``.
 """
 
 from __future__ import annotations
 
 import argparse
+import ctypes
 import logging
+import os
+import re
 import signal
+import socket
 import sys
 import threading
 import time
@@ -78,10 +85,13 @@ class WorkerStats:
     initialisations: int = 0
     lost: int = 0
     busy_s: float = 0.0
+    no_run: int = 0  # frames dropped because no run was announced (yet)
+    other_run: int = 0  # frames whose header names another run than the announced one
+    runs: int = 0  # trackers started (one per announced run)
 
 
 def keypoint_message(out: PipelineOutput, frame_number: int, stamp: float, run: dict[str, Any], ms: float) -> bytes:
-    """The ``keypoints`` message of one processed frame."""
+    """The ``keypoints`` message of one processed frame; ``run`` is the session's run announcement."""
     from tdcommon.wire import encode_keypoints
 
     topo = out.topology
@@ -98,14 +108,39 @@ def keypoint_message(out: PipelineOutput, frame_number: int, stamp: float, run: 
             "n_points": out.n_points, "processing_ms": round(ms, 2), "note": out.note,
             "run_index": run.get("run_index"),
         },
+        session_id=str(run.get("session_id", "")), run_id=str(run.get("run_id", "")),
     )
+
+
+def worker_id() -> str:
+    """``<host>-<pid>``, usable in a zenoh key."""
+    return f"{re.sub(r'[^A-Za-z0-9_-]', '_', socket.gethostname())}-{os.getpid()}"
+
+
+def die_with_parent(parent_pid: int) -> bool:
+    """Ask Linux to SIGKILL this process when its parent dies (``PR_SET_PDEATHSIG``); False when not possible.
+
+    Raises SystemExit when the parent is already gone (it died before the request was made).
+    """
+    ok = False
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            ok = libc.prctl(1, int(signal.SIGKILL), 0, 0, 0) == 0  # 1 = PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            ok = False
+    if os.getppid() != parent_pid:
+        raise SystemExit(f"worker: parent {parent_pid} is gone")
+    return ok
 
 
 class Worker:
     """Subscribes, tracks, publishes; ``run`` until ``stop`` is set."""
 
-    def __init__(self, config: Any, connect: list[str] | None = None) -> None:
+    def __init__(self, config: Any, connect: list[str] | None = None, session_id: str | None = None,
+                 parent_pid: int | None = None) -> None:
         from orchestrator.bus import Bus, local_endpoints
+        from orchestrator.live import KindCounter
 
         self.config = config
         endpoints = connect or config.bus.connect or local_endpoints(config.bus.listen)
@@ -117,10 +152,42 @@ class Worker:
         self.frame_sub = self.bus.subscribe(self.bus.key("cam", st.camera.id, "frame"), ring=1)
         self.bus.subscribe(self.bus.key("arms", "state"), callback=self._on_state)
         self.key_out = self.bus.key("keypoints")
+        self.session_id = session_id  # None: follow whichever session announces a run
+        self.parent_pid = parent_pid
+        self.malformed = KindCounter("frame not tracked", log)
         self.pipeline: LivePipeline | None = None
-        self._run_key: tuple | None = None
+        self._run_id: str | None = None  # the run the pipeline tracks
+        self._announced: dict[str, Any] | None = None  # the newest run announcement of our session
         self._last_frame: int | None = None
         self.stats = WorkerStats()
+        run_key = self.bus.key("session", "run")
+        self.bus.subscribe(run_key, callback=self._on_run)
+        try:  # the run under way when this worker starts (a restarted worker does not wait for the next one)
+            for payload in self.bus.get(run_key, timeout=2.0):
+                self._take_announcement(payload)
+        except Exception as e:  # no session yet: its announcement comes by the subscriber
+            log.debug("no run announcement to query: %s", e)
+        self.id = worker_id()
+        self.bus.declare_token(self.bus.key("worker", "alive", self.id))  # ready: the supervisor sees us up
+
+    def _on_run(self, sample: Any) -> None:
+        self._take_announcement(sample.payload.to_bytes())
+
+    def _take_announcement(self, payload: bytes) -> None:
+        """Follow a ``session/run`` announcement of our session (any session when started without one)."""
+        from tdcommon.wire import decode_json
+
+        try:
+            msg = decode_json(payload)
+            sid, rid = str(msg["session_id"]), str(msg["run_id"])
+        except (ValueError, KeyError, TypeError) as e:
+            self.malformed.add("announcement", f"not a run announcement: {e}")
+            return
+        if self.session_id is not None and sid != self.session_id:
+            self.malformed.add("other_session", f"announcement of session {sid!r}, following {self.session_id!r}")
+            return
+        with self._lock:
+            self._announced = msg if rid else None
 
     def _on_state(self, sample: Any) -> None:
         from tdcommon.wire import decode_json
@@ -133,13 +200,15 @@ class Worker:
             self._state = msg
 
     def _pipeline_for(self, run: dict[str, Any], K: np.ndarray, T: np.ndarray) -> LivePipeline:
-        key = (run.get("run_index"), run.get("object"), tuple(np.round(T, 6).ravel()))
-        if self.pipeline is None or key != self._run_key:
+        """The tracker of the announced ``run``: a new one only when the announced run id changes."""
+        if self.pipeline is None or run["run_id"] != self._run_id:
             category = run.get("category")
             params = tracking_params(self.config.tracking, category, run.get("n_keypoints"))
             self.pipeline = LivePipeline(params, K, T, DIMENSION.get(category))
-            self._run_key = key
-            log.info("new program run %s: tracking %s (%s)", run.get("run_index"), run.get("object"), category)
+            self._run_id = run["run_id"]
+            self.stats.runs += 1
+            log.info("new program run %s (%s): tracking %s (%s)", run.get("run_index"), run["run_id"],
+                     run.get("object"), category)
         return self.pipeline
 
     def step(self) -> bool:
@@ -150,14 +219,27 @@ class Worker:
         if sample is None:
             return False
         t0 = time.perf_counter()
-        msg = decode_frame(sample.payload.to_bytes())
+        try:
+            msg = decode_frame(sample.payload.to_bytes())
+        except (ValueError, KeyError, TypeError) as e:
+            self.malformed.add("frame", f"{type(e).__name__}: {e}")
+            return True
         frame = msg.frame
         if self._last_frame is not None and frame.frame_number > self._last_frame + 1:
             self.stats.skipped += frame.frame_number - self._last_frame - 1  # ring channel: newest wins
         self._last_frame = frame.frame_number
-        pipe = self._pipeline_for(msg.run, frame.intrinsics.K, msg.T_world_cam)
         with self._lock:
+            run = self._announced
             state = self._state
+        if run is None:
+            self.stats.no_run += 1
+            return True
+        if msg.run.get("run_id", run["run_id"]) != run["run_id"]:  # a frame of another run: not ours to track
+            self.stats.other_run += 1  # the announced run decides; at a run change one old frame may be waiting
+            log.debug("frame %d of run %r skipped (tracking %r)", frame.frame_number, msg.run.get("run_id"),
+                      run["run_id"])
+            return True
+        pipe = self._pipeline_for(run, frame.intrinsics.K, msg.T_world_cam)
         V = F = tcp = closed = None
         if state is not None:
             V, F, tcp, closed = self.arms.from_state(state)
@@ -168,7 +250,7 @@ class Worker:
         if out.status == "lost":
             self.stats.lost += 1
         ms = (time.perf_counter() - t0) * 1e3
-        self.bus.put(self.key_out, keypoint_message(out, frame.frame_number, frame.device_stamp, msg.run, ms))
+        self.bus.put(self.key_out, keypoint_message(out, frame.frame_number, frame.device_stamp, run, ms))
         self.stats.frames += 1
         self.stats.published += 1
         self.stats.busy_s += ms / 1e3
@@ -178,15 +260,20 @@ class Worker:
 
     def run(self, stop: threading.Event, max_frames: int | None = None) -> WorkerStats:
         """Poll with ``try_recv`` (a thread blocked in ``recv`` would make undeclare abort) until stopped."""
-        last_log = time.monotonic()
+        last_log = last_parent = time.monotonic()
         while not stop.is_set() and (max_frames is None or self.stats.frames < max_frames):
             try:
                 busy = self.step()
-            except Exception:  # one bad frame must not end the worker
-                log.exception("frame failed")
+            except Exception as e:  # one bad frame must not end the worker; logged once per kind
+                self.malformed.add(f"tracking {type(e).__name__}", str(e))
                 busy = True
             if not busy:
                 time.sleep(0.002)
+            if self.parent_pid is not None and time.monotonic() - last_parent > 0.5:
+                last_parent = time.monotonic()
+                if os.getppid() != self.parent_pid:
+                    log.warning("the session (pid %d) is gone: stopping", self.parent_pid)
+                    break
             if time.monotonic() - last_log > 5.0:
                 last_log = time.monotonic()
                 s = self.stats
@@ -207,6 +294,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("config", help="station config (YAML or JSON)")
     ap.add_argument("--connect", action="append", help="zenoh endpoint of the daemon or router (repeatable)")
     ap.add_argument("--max-frames", type=int, help="stop after this many frames")
+    ap.add_argument("--session-id", help="follow only this session's run announcements (set by the session)")
+    ap.add_argument("--parent-pid", type=int, help="exit when this process (the session) dies")
     ap.add_argument("-v", "--verbose", action="store_true")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
@@ -216,15 +305,18 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    if args.parent_pid is not None and not die_with_parent(args.parent_pid):
+        log.warning("PR_SET_PDEATHSIG unavailable: relying on the parent-pid check")
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    worker = Worker(config, args.connect)
+    worker = Worker(config, args.connect, session_id=args.session_id, parent_pid=args.parent_pid)
     try:
         stats = worker.run(stop, args.max_frames)
     finally:
         worker.close()
-    print(f"worker: {stats.frames} frames ({stats.skipped} skipped), {stats.initialisations} initialisations, "
+    print(f"worker: {stats.frames} frames ({stats.skipped} skipped, {stats.no_run} before a run announcement, "
+          f"{worker.malformed.total()} malformed), {stats.runs} runs, {stats.initialisations} initialisations, "
           f"{stats.lost} lost, mean {1e3 * stats.busy_s / max(1, stats.frames):.1f} ms/frame", file=sys.stderr)
     return 0
 

@@ -40,9 +40,10 @@ def _lower_priority() -> None:
     os.nice(10)
 
 
-def start_worker(config: Config, out_dir: Path) -> WorkerProcess:
+def start_worker(config: Config, out_dir: Path, extra_args: list[str] | None = None) -> WorkerProcess:
     """Launch the worker with the session's config (as JSON), connected to its listen endpoints.
 
+    ``extra_args`` go to ``orchestrator.worker`` (the supervisor passes ``--session-id`` and ``--parent-pid``).
     The worker runs at a lower CPU priority (nice 10): it takes the newest frame whenever it is
     free, so it adapts its rate, while the capture loop and the recorder must keep 30 Hz.
     """
@@ -51,8 +52,9 @@ def start_worker(config: Config, out_dir: Path) -> WorkerProcess:
     cfg_path.write_text(json.dumps(config.model_dump(mode="json"), indent=2))
     log_path = out_dir / "worker.log"
     cmd = [sys.executable, "-m", "orchestrator.worker", str(cfg_path)]
-    for e in local_endpoints(config.bus.listen):
+    for e in local_endpoints(config.bus.listen) or config.bus.connect:
         cmd += ["--connect", e]
+    cmd += extra_args or []
     with open(log_path, "ab") as logf:
         proc = subprocess.Popen(
             cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, preexec_fn=_lower_priority

@@ -14,7 +14,10 @@ Keys (``<prefix>/<station>/...``):
 - ``arms/state``: JSON ``{"stamp": s, "left": {"q": [7], "dq": [7], "gripper_width": m,
   "grasped": bool}, "right": {...}, "u": [12]}`` — u is the paper's arm input (per arm: TCP
   position m + rotation vector rad, world frame; left then right).
-- ``keypoints``: JSON, see :func:`encode_keypoints`.
+- ``keypoints``: JSON, see :func:`encode_keypoints`; its JSON Schema is :data:`KEYPOINTS_JSON_SCHEMA`
+  (also ``schemas/keypoints.schema.json`` and, from a live session, a get on ``schema/keypoints``).
+- ``session/run``: JSON :func:`run_announcement`, the run the session records now (the tracker
+  switches runs on it alone).
 """
 
 from __future__ import annotations
@@ -29,7 +32,48 @@ import numpy as np
 from tdcommon.types import CameraIntrinsics, GroundTruth, RGBDFrame
 
 FRAME_MAGIC = b"TDF1"
-KEYPOINTS_SCHEMA = "trackdeform.Keypoints/1"
+KEYPOINTS_SCHEMA = "trackdeform.Keypoints/2"
+KEYPOINTS_STATUS = ("reference", "waiting", "init", "tracking", "degraded", "lost")
+
+_POINT = {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}
+_PAIR = {"type": "array", "items": {"type": "integer", "minimum": 0}, "minItems": 2, "maxItems": 2}
+_MM = {"type": ["number", "null"], "minimum": 0}
+KEYPOINTS_JSON_SCHEMA: dict[str, Any] = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "$id": "https://trackdeform3d.invalid/schemas/keypoints.schema.json",
+    "title": KEYPOINTS_SCHEMA,
+    "description": "Live TrackDeform3D keypoints of one camera frame, published as UTF-8 JSON on "
+                   "<prefix>/<station>/keypoints. Units: metres, seconds; world frame (z up).",
+    "type": "object",
+    "required": ["schema", "session_id", "run_id", "frame_number", "stamp", "keypoints", "edges",
+                 "grasp_indices", "object", "category", "status", "abs_mm", "cd_mm", "anchors"],
+    "properties": {
+        "schema": {"const": KEYPOINTS_SCHEMA},
+        "session_id": {"type": "string", "minLength": 1, "description": "the recording session (its announcement)"},
+        "run_id": {"type": "string", "minLength": 1, "description": "the program run (session/run announcement)"},
+        "frame_number": {"type": "integer", "minimum": 0, "description": "the camera frame the keypoints are of"},
+        "stamp": {"type": "number", "description": "the frame's device stamp, s"},
+        "keypoints": {"type": "array", "items": _POINT, "description": "(N, 3) m, world frame; [] when lost"},
+        "edges": {"type": "array", "items": _PAIR, "description": "(E, 2) indices into keypoints"},
+        "grasp_indices": {
+            "type": "object", "required": ["left", "right"],
+            "properties": {s: {"type": "integer", "minimum": -1} for s in ("left", "right")},
+            "description": "the keypoint each gripper holds, -1 for none",
+        },
+        "object": {"type": "string"},
+        "category": {"enum": ["dlo", "bdlo", "cloth", ""]},
+        "status": {"enum": list(KEYPOINTS_STATUS)},
+        "abs_mm": {**_MM, "description": "the paper's Abs: edge-length RMSE against the rest lengths, mm"},
+        "cd_mm": {**_MM, "description": "the paper's CD: keypoint-to-cloud distance, mm"},
+        "anchors": {"type": "array", "items": {"type": "integer", "minimum": 0}},
+        "smoothed": {"type": "array", "items": _POINT, "description": "(N, 3) m, causal moving average"},
+        "rest_lengths": {"type": "array", "items": {"type": "number", "minimum": 0}, "description": "(E,) m"},
+        "n_points": {"type": "integer", "minimum": 0, "description": "object cloud points used"},
+        "processing_ms": {"type": "number", "minimum": 0},
+        "note": {"type": "string"},
+        "run_index": {"type": ["integer", "null"], "description": "the run's index in the plan"},
+    },
+}
 
 
 @dataclass(frozen=True)
@@ -169,16 +213,20 @@ def encode_keypoints(
     cd_mm: float | None,
     anchors: np.ndarray | None = None,
     extra: dict[str, Any] | None = None,
+    session_id: str = "",
+    run_id: str = "",
 ) -> bytes:
-    """Live keypoints as JSON.
+    """Live keypoints as JSON (:data:`KEYPOINTS_JSON_SCHEMA`).
 
-    ``{"schema": "trackdeform.Keypoints/1", "frame_number", "stamp" (s, the frame's device stamp),
-    "keypoints": [[x, y, z], ...] (m, world), "edges": [[i, j], ...], "grasp_indices":
+    ``{"schema": "trackdeform.Keypoints/2", "session_id", "run_id", "frame_number", "stamp" (s, the frame's
+    device stamp), "keypoints": [[x, y, z], ...] (m, world), "edges": [[i, j], ...], "grasp_indices":
     {"left": i or -1, "right": ...}, "object", "category" ("dlo"|"bdlo"|"cloth"), "status"
-    ("init"|"tracking"|"lost"), "abs_mm", "cd_mm", "anchors": [i, ...]}``.
+    (:data:`KEYPOINTS_STATUS`), "abs_mm", "cd_mm", "anchors": [i, ...]}``.
     """
     msg = {
         "schema": KEYPOINTS_SCHEMA,
+        "session_id": session_id,
+        "run_id": run_id,
         "frame_number": int(frame_number),
         "stamp": float(stamp),
         "keypoints": np.round(np.asarray(keypoints, dtype=np.float64), 6).tolist(),
@@ -194,3 +242,59 @@ def encode_keypoints(
     if extra:
         msg.update(extra)
     return encode_json(msg)
+
+
+def check_keypoints(msg: Any) -> tuple[str, str] | None:
+    """Why a decoded keypoint message cannot be recorded, as (kind, detail); None when it can.
+
+    Checks what a JSON Schema cannot: keypoints (N, 3) finite, edges and anchors indices < N,
+    grasp indices in [-1, N). ``kind`` is one of: not_object, schema, missing, ids, frame_number,
+    keypoints, not_finite, edges, anchors, grasp, status.
+    """
+    if not isinstance(msg, dict):
+        return "not_object", f"expected a JSON object, got {type(msg).__name__}"
+    if msg.get("schema") != KEYPOINTS_SCHEMA:
+        return "schema", f"schema {msg.get('schema')!r}, expected {KEYPOINTS_SCHEMA!r}"
+    missing = [k for k in KEYPOINTS_JSON_SCHEMA["required"] if k not in msg]
+    if missing:
+        return "missing", f"missing fields {missing}"
+    if not all(isinstance(msg[k], str) and msg[k] for k in ("session_id", "run_id")):
+        return "ids", "session_id and run_id must be non-empty strings"
+    fn = msg["frame_number"]
+    if isinstance(fn, bool) or not isinstance(fn, int) or fn < 0:
+        return "frame_number", f"frame_number {fn!r} is not an integer >= 0"
+    if msg["status"] not in KEYPOINTS_STATUS:
+        return "status", f"status {msg['status']!r} is not one of {KEYPOINTS_STATUS}"
+    try:
+        kp = np.asarray(msg["keypoints"], dtype=np.float64)
+    except (TypeError, ValueError):
+        return "keypoints", "keypoints are not a numeric (N, 3) array"
+    if kp.size == 0:
+        kp = kp.reshape(0, 3)
+    if kp.ndim != 2 or kp.shape[1] != 3:
+        return "keypoints", f"keypoints have shape {kp.shape}, expected (N, 3)"
+    if not np.isfinite(kp).all():
+        return "not_finite", "keypoints hold NaN or infinite values"
+    n = len(kp)
+    for field in ("edges", "anchors"):
+        try:
+            a = np.asarray(msg[field], dtype=np.float64)
+        except (TypeError, ValueError):
+            return field, f"{field} are not numeric"
+        if field == "edges" and a.size == 0:
+            a = a.reshape(0, 2)
+        if (field == "edges" and (a.ndim != 2 or a.shape[1] != 2)) or (field == "anchors" and a.ndim != 1):
+            return field, f"{field} have shape {a.shape}"
+        if a.size and (not np.isfinite(a).all() or (a != np.round(a)).any() or a.min() < 0 or a.max() >= n):
+            return field, f"{field} hold indices outside [0, {n}) or non-integers"
+    g = msg["grasp_indices"]
+    if not isinstance(g, dict) or any(not isinstance(g.get(s), int) or not -1 <= g[s] < max(n, 0)
+                                      for s in ("left", "right") if s in g) or not {"left", "right"} <= set(g):
+        return "grasp", f"grasp_indices {g!r} must map left and right to -1 or a keypoint index < {n}"
+    return None
+
+
+def run_announcement(*, session_id: str, run_id: str, run: dict[str, Any], stamp: float) -> dict[str, Any]:
+    """The ``session/run`` message: which run the session records now (object, category, program, speed,
+    run_index, n_keypoints in ``run``); ``run_id`` "" between runs. ``stamp``: host time, s."""
+    return {"schema": "trackdeform.Run/1", "session_id": session_id, "run_id": run_id, "stamp": stamp, **run}

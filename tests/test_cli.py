@@ -2,18 +2,18 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
-from orchestrator.bus import Bus
 from orchestrator.cli import main
-from orchestrator.config import BusConfig
+from orchestrator.cli_tracking import format_keypoints_line
 from orchestrator.recorder import EpisodeWriter
-from tdcommon.wire import encode_keypoints
+from tdcommon.wire import check_keypoints
 from tests.conftest import REPO, make_frame
 
 CLI = [sys.executable, "-m", "orchestrator.cli"]
@@ -59,29 +59,37 @@ def test_inspect_and_recover(tmp_path: Path, capsys) -> None:
     assert "nothing to recover" in capsys.readouterr().out
 
 
-def test_watch_prints_live_keypoints(port: int) -> None:
+@pytest.mark.slow
+def test_watch_prints_live_keypoints(tmp_path: Path, port: int) -> None:
+    """The real path: a real-time demo (session + its tracking worker, two processes) and `watch` in a third
+    process, which knows only the session's endpoint, prints the worker's keypoints."""
     endpoint = f"tcp/127.0.0.1:{port}"
-    with Bus(BusConfig(listen=[endpoint]), "mock") as bus:
-        proc = subprocess.Popen(
-            [*CLI, "watch", "--connect", endpoint, "--count", "2", "--seconds", "30"],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        )
-        try:
-            deadline = time.monotonic() + 30
-            n = 0
-            while proc.poll() is None and time.monotonic() < deadline:
-                bus.put(bus.key("keypoints"), encode_keypoints(
-                    frame_number=n, stamp=n / 30, keypoints=np.zeros((20, 3)), edges=np.zeros((19, 2), int),
-                    grasp_indices={"left": 0, "right": 19}, object_name="rope", category="dlo",
-                    status="tracking", abs_mm=1.25, cd_mm=2.5,
-                ))
-                n += 1
-                time.sleep(0.1)
-            out, err = proc.communicate(timeout=30)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
-    lines = [ln for ln in out.splitlines() if ln.startswith("frame")]
-    assert len(lines) == 2, err
-    assert "rope/dlo" in lines[0] and "N= 20" in lines[0] and "Abs  1.25 mm" in lines[0] and "L=0 R=19" in lines[0]
+    out = tmp_path / "demo"
+    demo = subprocess.Popen([*CLI, "demo", "--seconds", "120", "--out", str(out), "--port", str(port)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        watch = subprocess.run([*CLI, "watch", "--connect", endpoint, "--count", "40", "--seconds", "150", "--json"],
+                               capture_output=True, text=True, timeout=200)
+        stop = subprocess.run([*CLI, "ctl", "stop", "--connect", endpoint, "--station", "mock"],
+                              capture_output=True, text=True, timeout=60)
+        demo_out, _ = demo.communicate(timeout=120)
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.wait()
+    msgs = [json.loads(ln) for ln in watch.stdout.splitlines() if ln.startswith("{")]
+    worker_log = (out / "worker.log").read_text() if (out / "worker.log").exists() else ""
+    assert len(msgs) == 40, watch.stderr + demo_out + worker_log
+    assert stop.returncode == 0 and "stopping" in stop.stdout, stop.stdout + stop.stderr
+    assert demo.returncode == 0, demo_out
+    session_ids = {m["session_id"] for m in msgs}
+    assert len(session_ids) == 1 and all(m["run_id"] and m["object"] == "rope" for m in msgs)
+    assert [m["frame_number"] for m in msgs] == sorted({m["frame_number"] for m in msgs})  # every set, in order
+    assert all(check_keypoints(m) is None for m in msgs)
+    tracked = [m for m in msgs if m["status"] in ("init", "tracking", "degraded")]
+    assert tracked and len(tracked[-1]["keypoints"]) == 20, msgs[-1]["status"]
+    line = format_keypoints_line(tracked[-1])
+    assert "rope/dlo" in line and "N= 20" in line
+    events = [json.loads(ln) for ln in (out / "events.jsonl").read_text().splitlines()]
+    assert any(e["event"] == "ctl" and e["command"] == "stop" for e in events)
+    assert events[-1]["event"] == "state" and events[-1]["state"] == "done"
