@@ -27,6 +27,7 @@ from orchestrator.live import KeypointGate
 from orchestrator.session import Session
 from tdcommon.wire import check_keypoints, decode_frame, decode_json, encode_frame, encode_json, encode_keypoints
 from tdrecord import read_episode_metadata
+from tdrecord.channels import keypoints_record
 from tests.conftest import make_frame
 
 
@@ -288,7 +289,7 @@ def test_malformed_keypoint_messages_are_not_recorded(tmp_path: Path, port: int)
     for ep in sorted(tmp_path.glob("episode_*.mcap")):
         with open(ep, "rb") as f:
             recorded += [json.loads(m.data) for _, _, m in make_reader(f).iter_messages(topics=["/keypoints"])]
-    assert recorded == [good]
+    assert recorded == [keypoints_record(good)]  # as recorded: points {x, y, z}, edges {i, j}
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["keypoints_recorded"] == 1
     assert s["keypoints_rejected"] == {"keypoints": 1, "edges": 1, "not_finite": 1, "other_session": 1,
