@@ -143,7 +143,14 @@ class OutputConfig(StrictModel):
 
     directory: Path = Field(Path("runs"), description="episodes go to <directory>/<session>/")
     compression: Literal["zstd", "lz4", "none"] = "zstd"
-    min_free_gb: float = Field(2.0, ge=0.0, description="stop cleanly below this free disk space, GiB")
+    min_free_gb: float = Field(
+        2.0, ge=0.0, description="below this free disk space, GiB, no episode opens and the open one closes"
+    )
+    on_low_disk: Literal["stop", "pause"] = Field(
+        "stop", description="below min_free_gb: stop the session, or pause (arms at rest) until space returns"
+    )
+    disk_check_seconds: float = Field(1.0, gt=0.0, le=60.0, description="free space is checked this often, s")
+    low_disk_poll_seconds: float = Field(10.0, gt=0.0, le=600.0, description="paused: check for space this often, s")
 
 
 class Config(StrictModel):
@@ -244,9 +251,13 @@ def load_config(path: str | Path, overrides: dict[str, Any] | None = None) -> Co
     """Read and validate a YAML config; ``overrides`` are dotted keys set after reading."""
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except OSError as e:
         raise ConfigError(f"{path}: cannot read config: {e.strerror}") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(
+            f"{path}: not UTF-8 text (byte 0x{e.object[e.start]:02x} at offset {e.start}); a config is a YAML file"
+        ) from None
     try:
         root = yaml.compose(text)
         data = yaml.safe_load(text)

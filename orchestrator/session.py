@@ -21,9 +21,11 @@ from orchestrator import __version__
 from orchestrator.bus import Bus
 from orchestrator.capture import EpisodeStream, RunCapture, RunContext
 from orchestrator.config import Config
+from orchestrator.fsutil import SpaceReserve
 from orchestrator.journal import Journal, RunKey, now_iso, record_key, run_key
 from orchestrator.plan import RunItem, build_plan
 from orchestrator.progress import Progress
+from orchestrator.ratelog import OncePerKind
 from orchestrator.recorder import Recorder, recover_active
 from orchestrator.station import Station
 from orchestrator.summary import SessionSummary
@@ -49,6 +51,7 @@ class Session:
         state_rate: float = 250.0,
         on_station: Callable[[Station], None] | None = None,
         journal: Journal | None = None,
+        finishing: threading.Event | None = None,
     ) -> None:
         self.config = config
         self.out_dir = Path(out_dir)
@@ -70,6 +73,9 @@ class Session:
         self._attempts: dict[RunKey, int] = {}
         self._pending: list[tuple[dict[str, Any], list[Path]]] = []  # "done" records waiting for their files
         self._done_keys: set[RunKey] = set()
+        self._reserve: SpaceReserve | None = None
+        self._malformed = OncePerKind(log, "ignored a malformed keypoint message")
+        self.finishing = finishing or threading.Event()  # set once the last files and the summary are written
 
     # ------------------------------------------------------------------ public
     def run(self, max_seconds: float | None = None, loop: bool = False) -> SessionSummary:
@@ -85,6 +91,7 @@ class Session:
         if journal is None or journal.closed:
             journal = self._journal = Journal.open(self.out_dir, self.config)
         try:
+            self._reserve = SpaceReserve(self.out_dir)
             for path, outcome in recover_active(self.out_dir):
                 self.progress.message(f"found an unfinished episode from an earlier run: {path.name}: {outcome}")
             cam = self.config.station.camera
@@ -93,6 +100,7 @@ class Session:
                 self.out_dir, self._recorder, self.bus, cam.id, self.summary,
                 min_free_gb=self.config.output.min_free_gb, stop_event=self.stop_event,
                 before_open=lambda: self._flush_pending(final=False),
+                disk_check_seconds=self.config.output.disk_check_seconds,
             )
             if self.bus is not None:
                 self.bus.subscribe(self.bus.key("keypoints"), callback=self._on_keypoints)
@@ -160,22 +168,34 @@ class Session:
         self._attempts, self._done_keys = {}, set()
 
     def _finish(self, journal: Journal, t_wall: float) -> None:
-        """Finish the episodes, journal the runs whose files are now final, fill and write the summary."""
+        """Finish the episodes, journal the runs whose files are now final, fill and write the summary.
+
+        The summary is written whatever happens on the way (a second signal, a full disk): the space
+        reserve is released first, and a summary that cannot be written is reported in one line.
+        """
+        self.finishing.set()
         try:
             if self._recorder is not None:
                 self._recorder.stop()
-                self._flush_pending(final=True)
+                self._with_space(lambda: self._flush_pending(final=True))
+        finally:
+            journal.close()
+            if self._reserve is not None:
+                self._reserve.release()
+            if self._recorder is not None:
                 self.summary.episodes = sorted(self._recorder.finished)
                 self.summary.keypoints_recorded = self._recorder.keypoints_written
                 self.summary.errors.extend(self._recorder.errors)
-        finally:
-            journal.close()
-        planned = {run_key(it) for it in build_plan(self.config.plan)}
-        self.summary.plan_runs_done = len(self._done_keys & planned)
-        self.summary.plan_pass = self._pass
-        self.summary.wall_seconds = time.monotonic() - t_wall
-        self.progress.done()
-        self.summary.write(self.out_dir / "summary.json")
+            planned = {run_key(it) for it in build_plan(self.config.plan)}
+            self.summary.plan_runs_done = len(self._done_keys & planned)
+            self.summary.plan_pass = self._pass
+            self.summary.wall_seconds = time.monotonic() - t_wall
+            self.progress.done()
+            try:
+                self.summary.write(self.out_dir / "summary.json")
+            except OSError as e:
+                self.summary.errors.append(f"{self.out_dir / 'summary.json'}: could not be written: {e}")
+                self.progress.message(f"error: {self.out_dir / 'summary.json'}: could not be written: {e}")
 
     # ------------------------------------------------------------------ internals
     def _should_stop(self) -> bool:
@@ -189,8 +209,10 @@ class Session:
     def _on_keypoints(self, sample: Any) -> None:
         try:
             msg = decode_json(sample.payload.to_bytes())
+            if not isinstance(msg, dict):
+                raise ValueError(f"a JSON {type(msg).__name__}, expected an object")
         except Exception as e:
-            log.warning("ignored a malformed keypoint message: %s", e)
+            self._malformed.report(type(e).__name__, str(e)[:200])
             return
         if self._recorder is not None:
             self._recorder.keypoints(msg)
@@ -223,7 +245,17 @@ class Session:
             station.close()
 
     def _run_journaled(self, item: RunItem, station: Station) -> None:
-        """Run an item between a ``start`` and a ``run`` journal record (none when a stop cuts it short)."""
+        """Run an item between a ``start`` and a ``run`` journal record (none when a stop cuts it short).
+
+        Low disk space ends the attempt (journaled failed, with the reason); with ``output.on_low_disk:
+        pause`` the item runs again once space returns, else the session stops. A recorder that failed
+        on an I/O error stops the session: the run is journaled failed with the reason.
+        """
+        while self._run_attempt(item, station):
+            pass
+
+    def _run_attempt(self, item: RunItem, station: Station) -> bool:
+        """One attempt at an item; True when it is to be attempted again (space came back after a pause)."""
         key = run_key(item)
         self._flush_pending(final=False)
         attempt = self._attempts[key] = self._attempts.get(key, 0) + 1
@@ -244,6 +276,24 @@ class Session:
         t0 = time.monotonic()
         outcome, reason = capture.run()
         episodes, wall = list(capture.episodes), time.monotonic() - t0
+        if outcome == "low_disk":
+            assert reason is not None
+            self._journal_run(item, "failed", f"low disk space: {reason}", episodes, wall)
+            self.progress.message(f"warning: {reason}")
+            if self.config.output.on_low_disk == "pause" and self._wait_for_disk():
+                return True
+            self.summary.stopped_early = self.summary.stopped_early or reason
+            self.stop_event.set()
+            return False
+        if outcome == "failed" and self._recorder is not None and self._recorder.failed is not None:
+            self._with_space(lambda: self._journal_run(item, outcome, reason, episodes, wall))
+            self.summary.stopped_early = f"recording failed: {self._recorder.failed}"
+            self.progress.message(
+                f"error: recording stopped: {self._recorder.failed}; unfinished files stay .active "
+                f"(run `trackdeform recover {self.out_dir}` once there is space)"
+            )
+            self.stop_event.set()
+            return False
         if outcome == "stopped":
             self.summary.runs_cut_short.append(
                 f"{item.label}: stopped after {len(episodes)} episode(s); runs again from its start on resume"
@@ -253,6 +303,33 @@ class Session:
             self._pending.append((self._run_record(item, "done", None, episodes, wall), episodes))
         else:
             self._journal_run(item, outcome, reason, episodes, wall)
+        return False
+
+    def _with_space(self, write: Callable[[], None]) -> None:
+        """Run a journal write; on an OSError (a full disk) release the space reserve and try once more."""
+        try:
+            write()
+        except OSError:
+            if self._reserve is None or not self._reserve.held:
+                raise
+            self._reserve.release()
+            write()
+
+    def _wait_for_disk(self) -> bool:
+        """Pause (arms stopped, nothing recorded) until free space is back above ``min_free_gb``.
+
+        True when it is; False when a stop came first.
+        """
+        assert self._stream is not None
+        poll = self.config.output.low_disk_poll_seconds
+        self.summary.low_disk_pauses += 1
+        self.progress.message(f"paused: waiting for free space in {self.out_dir} (checked every {poll:g} s)")
+        while not self.stop_event.is_set():
+            if self._stream.disk_low() is None:
+                self.progress.message("free space is back: resuming")
+                return True
+            self.stop_event.wait(poll)
+        return False
 
     def _run_record(
         self, item: RunItem, outcome: str, reason: str | None, episodes: list[Path], wall: float

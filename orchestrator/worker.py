@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from orchestrator.ratelog import OncePerKind
 from tdcommon.meshes import merge_meshes
 from tdcommon.objects import DIMENSION, default_keypoints
 from tracking.params import TrackingParams
@@ -121,6 +122,7 @@ class Worker:
         self._run_key: tuple | None = None
         self._last_frame: int | None = None
         self.stats = WorkerStats()
+        self.malformed = OncePerKind(log, "ignored a malformed frame message")
 
     def _on_state(self, sample: Any) -> None:
         from tdcommon.wire import decode_json
@@ -150,7 +152,11 @@ class Worker:
         if sample is None:
             return False
         t0 = time.perf_counter()
-        msg = decode_frame(sample.payload.to_bytes())
+        try:
+            msg = decode_frame(sample.payload.to_bytes())
+        except Exception as e:  # a malformed frame message: counted, logged once per kind (no traceback)
+            self.malformed.report(type(e).__name__, str(e)[:200])
+            return True
         frame = msg.frame
         if self._last_frame is not None and frame.frame_number > self._last_frame + 1:
             self.stats.skipped += frame.frame_number - self._last_frame - 1  # ring channel: newest wins

@@ -28,15 +28,36 @@ log = logging.getLogger(__name__)
 ACTIVE_SUFFIX = ".mcap.active"
 
 
+OPEN_METADATA = "episode_open"  # written when the episode opens (kept by recovery)
+CLOSE_METADATA = "episode"  # written when it closes, or by recovery (complete: false)
+
+
+def merge_metadata(records: Iterable[Any]) -> dict[str, Any] | None:
+    """The episode metadata of an MCAP file's metadata records: ``episode_open`` updated by ``episode``,
+    values decoded from JSON; None when the file has neither."""
+    opened: dict[str, Any] | None = None
+    closed: dict[str, Any] | None = None
+    for m in records:
+        if m.name in (OPEN_METADATA, CLOSE_METADATA):
+            values = {k: json.loads(v) for k, v in m.metadata.items()}
+            if m.name == OPEN_METADATA:
+                opened = {**(opened or {}), **values}
+            else:
+                closed = {**(closed or {}), **values}
+    if opened is None and closed is None:
+        return None
+    return {**(opened or {}), **(closed or {})}
+
+
 def read_episode_metadata(path: Path) -> dict[str, Any]:
-    """The ``episode`` metadata record of a finished file, values decoded from JSON."""
+    """The episode metadata of a finished file (``episode_open`` merged with ``episode``), values decoded."""
     from mcap.reader import make_reader
 
     with open(path, "rb") as f:
-        for m in make_reader(f).iter_metadata():
-            if m.name == "episode":
-                return {k: json.loads(v) for k, v in m.metadata.items()}
-    raise ValueError(f"{path}: no 'episode' metadata record")
+        meta = merge_metadata(make_reader(f).iter_metadata())
+    if meta is None:
+        raise ValueError(f"{path}: no 'episode' metadata record")
+    return meta
 
 
 @dataclass
@@ -105,10 +126,7 @@ def _index_episode(path: Path, camera_id: str | None) -> _EpisodeIndex:
             for t in (f"{cam}/color", f"{cam}/depth"):
                 if t not in topics:
                     raise DatasetError(f"{path}: no '{t}' channel (channels: {sorted(topics)})")
-            metadata: dict[str, Any] = {}
-            for m in reader.iter_metadata():
-                if m.name == "episode":
-                    metadata = {k: json.loads(v) for k, v in m.metadata.items()}
+            metadata: dict[str, Any] = merge_metadata(reader.iter_metadata()) or {}
             color_t: dict[int, int] = {}
             depth_t: set[int] = set()
             info: dict[int, dict[str, Any]] = {}
