@@ -23,7 +23,7 @@ from drivers.base import DeviceError
 from drivers.clock import Clock
 from orchestrator import __version__
 from orchestrator.bus import Bus
-from orchestrator.config import Config
+from orchestrator.config import Config, SyncConfig
 from orchestrator.fsutil import free_bytes
 from orchestrator.plan import RunItem
 from orchestrator.programs import PlannedMotion, ProgramRejected, plan_motion
@@ -31,6 +31,8 @@ from orchestrator.progress import Progress
 from orchestrator.recorder import Recorder, RecordingFailed
 from orchestrator.station import ARMS, StatePoller, Station
 from orchestrator.summary import SessionSummary
+from orchestrator.timesync import TimeSync
+from tdcommon.transforms import pose_to_input
 from tdcommon.types import RGBDFrame
 from tdcommon.wire import encode_frame, encode_json
 
@@ -48,17 +50,25 @@ class EpisodeStream:
     Free space is checked before each episode opens and every ``disk_check_seconds`` of frames
     during one: below ``min_free_gb`` :class:`LowDisk` is raised. Once the recorder has failed
     (an I/O error) :class:`RecordingFailed` is raised instead of recording or opening anything.
+
+    Every frame is paired with both arms' joint states at its capture time (:mod:`orchestrator.timesync`):
+    the pair is recorded (``/arms/state_at_frame``), sent with the frame on the bus (``joint_state``: the
+    worker's arm mask uses it) and each episode's metadata gets the sync figures (``time_sync``).
     """
 
     def __init__(self, out_dir: Path, recorder: Recorder, bus: Bus | None, camera_id: str, summary: SessionSummary,
                  *, min_free_gb: float, stop_event: threading.Event, before_open: Callable[[], None],
-                 disk_check_seconds: float = 1.0) -> None:
+                 disk_check_seconds: float = 1.0, sync: SyncConfig | None = None) -> None:
         self.out_dir = out_dir
         self.recorder = recorder
         self.bus = bus
         self.summary = summary
         self.min_free_gb = min_free_gb
         self.disk_check_seconds = disk_check_seconds
+        sc = sync or SyncConfig()
+        self.sync = TimeSync(sc.camera_latency_s, self._tcp_input, sc.offset_window_s, sc.max_pairing_gap_s)
+        self._station: Station | None = None
+        self._last_device_stamp: float | None = None
         self._frames_since_check = 0
         self.stop_event = stop_event
         self.before_open = before_open  # called before each new file (the journal catches up on done runs)
@@ -88,6 +98,7 @@ class EpisodeStream:
         if low is not None:
             raise LowDisk(low)
         self._frames_since_check = 0
+        self.sync.reset_episode()
         self.before_open()
         path = self.out_dir / f"episode_{self.next_index:06d}.mcap"
         self.recorder.open_episode(path, {**meta, "episode_index": self.next_index})
@@ -100,6 +111,7 @@ class EpisodeStream:
         if not self.episode_open:
             return
         meta: dict[str, Any] = {"complete": complete, "fault": fault}  # every episode has both keys
+        meta["time_sync"] = self.sync.episode_report(self._last_device_stamp)
         if station.sim is not None:
             meta.update(station.sim.episode_facts())
         self.recorder.close_episode(meta)
@@ -112,9 +124,13 @@ class EpisodeStream:
         self.last_frame_number = frame.frame_number
         self.summary.frames_captured += 1
         self.check_recorder()
-        self.recorder.frame(frame, station.T_world_cam)
+        self._station = station
+        self._last_device_stamp = frame.device_stamp
+        paired = self.sync.pair(frame.frame_number, frame.device_stamp, frame.host_stamp)
+        self.recorder.frame(frame, station.T_world_cam, paired)
         if self.bus is not None:
-            self.bus.put(self._frame_key, encode_frame(frame, station.T_world_cam, station.camera.id, self.run_info))
+            self.bus.put(self._frame_key, encode_frame(frame, station.T_world_cam, station.camera.id, self.run_info,
+                                                       joint_state=paired))
         self._frames_since_check += 1
         if self.episode_open and self._frames_since_check >= max(1, round(self.disk_check_seconds * station.fps)):
             self._frames_since_check = 0
@@ -125,10 +141,17 @@ class EpisodeStream:
     def sample_states(self, station: Station) -> None:
         """Sample both arms once; record and publish the ``arms/state`` message."""
         msg, tcps = station.sample_state()
+        self.sync.states.add(msg)
         self.summary.state_samples += 1
         self.recorder.arm_state(msg, tcps)
         if self.bus is not None:
             self.bus.put(self._state_key, encode_json(msg))
+
+
+    def _tcp_input(self, arm: str, q: np.ndarray) -> np.ndarray:
+        """u of one arm (6,): TCP position m + rotation vector rad, world frame, for joints q (7,)."""
+        assert self._station is not None
+        return pose_to_input(self._station.kin[arm].tcp_pose(q))
 
 
 def next_episode_index(out_dir: Path) -> int:

@@ -153,6 +153,20 @@ class OutputConfig(StrictModel):
     low_disk_poll_seconds: float = Field(10.0, gt=0.0, le=600.0, description="paused: check for space this often, s")
 
 
+class SyncConfig(StrictModel):
+    """Camera–arm time sync: frames paired with the joint states at their capture time (orchestrator.timesync)."""
+
+    camera_latency_s: float = Field(
+        0.0, ge=0.0, le=1.0,
+        description="fixed delay from a frame's capture to its arrival at the host, s, beyond the clock offset "
+                    "(timestamps cannot tell it from the offset: measure it once per camera)",
+    )
+    offset_window_s: float = Field(30.0, ge=2.0, le=3600.0, description="the clock offset and drift are fitted "
+                                   "over this much recent device time, s")
+    max_pairing_gap_s: float = Field(0.05, gt=0.0, le=1.0, description="a frame with no joint state this close to "
+                                     "its capture time is recorded unpaired, s")
+
+
 class Config(StrictModel):
     """Everything a collection session needs."""
 
@@ -161,6 +175,7 @@ class Config(StrictModel):
     tracking: TrackingConfig = Field(default_factory=TrackingConfig)
     bus: BusConfig = Field(default_factory=BusConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
+    sync: SyncConfig = Field(default_factory=SyncConfig)
     clock: Literal["real", "sim"] = Field("real", description="'sim': simulated time (tests), fake devices only")
 
     @model_validator(mode="after")

@@ -5,7 +5,9 @@ Channels (Foxglove schemas where one fits, so a file opens in Foxglove):
 - ``/cam/<id>/color``  foxglove.RawImage rgb8;  ``/cam/<id>/depth``  foxglove.RawImage 16UC1 (mm)
 - ``/cam/<id>/calibration``  foxglove.CameraCalibration (frame ``cam``)
 - ``/cam/<id>/frame_info``  JSON {frame_number, device_stamp, host_stamp}
-- ``/arms/state``  JSON (see tdcommon.wire);  ``/tf``  foxglove.FrameTransforms (world -> cam, TCPs)
+- ``/arms/state``  JSON (see tdcommon.wire);  ``/arms/state_at_frame``  JSON: both arms' joints interpolated
+  at each frame's capture time and u_t from them (orchestrator.timesync), with ``frame_number``
+- ``/tf``  foxglove.FrameTransforms (world -> cam, TCPs)
 - ``/keypoints``  JSON (trackdeform.Keypoints/1, exact arrays);  ``/keypoints/scene``  foxglove.SceneUpdate
 - ``/ground_truth/keypoints``  JSON (mock mode)
 
@@ -121,6 +123,7 @@ class EpisodeWriter:
             (f"{cam}/calibration", calib, "protobuf"),
             (f"{cam}/frame_info", js("trackdeform.FrameInfo", obj), "json"),
             ("/arms/state", js("trackdeform.ArmState", obj), "json"),
+            ("/arms/state_at_frame", js("trackdeform.ArmStateAtFrame", obj), "json"),
             ("/tf", tf, "protobuf"),
             ("/keypoints", js("trackdeform.Keypoints", obj), "json"),
             ("/keypoints/scene", scene, "protobuf"),
@@ -227,6 +230,10 @@ class EpisodeWriter:
         if tcp_poses and t - self._last_tf >= 1.0 / TF_RATE - 1e-9:
             self._last_tf = t
             self.write_transforms(t, tcp_poses)
+
+    def write_frame_state(self, paired: dict[str, Any], t: float) -> None:
+        """The arms' state at a frame's capture time (``t``: the frame's log time, s)."""
+        self._add_json("/arms/state_at_frame", paired, t)
 
     def write_keypoints(self, msg: dict[str, Any], t: float) -> None:
         """Tracked keypoints (exact JSON) and a SceneUpdate with spheres and edge lines."""
@@ -459,9 +466,9 @@ class Recorder:
         """Start a new episode file (the previous one must have been closed); ``metadata`` is written at once."""
         self._q.put(("open", path, metadata))
 
-    def frame(self, frame: RGBDFrame, T_world_cam: np.ndarray) -> None:
-        """Record a frame in the current episode."""
-        self._q.put(("frame", frame, T_world_cam))
+    def frame(self, frame: RGBDFrame, T_world_cam: np.ndarray, paired: dict[str, Any] | None = None) -> None:
+        """Record a frame in the current episode, with the arms' state at its capture time if paired."""
+        self._q.put(("frame", frame, T_world_cam, paired))
 
     def arm_state(self, state: dict[str, Any], tcp_poses: dict[str, np.ndarray] | None = None) -> None:
         """Record one joint-state sample of both arms."""
@@ -567,6 +574,8 @@ class Recorder:
         elif op == "frame":
             if self._current is not None:
                 self._current.write_frame(item[1], item[2])
+                if len(item) > 3 and item[3] is not None:
+                    self._current.write_frame_state(item[3], item[1].device_stamp)
             self._tick_closing()
         elif op == "arm":
             if self._current is not None:

@@ -101,6 +101,7 @@ class Session:
                 min_free_gb=self.config.output.min_free_gb, stop_event=self.stop_event,
                 before_open=lambda: self._flush_pending(final=False),
                 disk_check_seconds=self.config.output.disk_check_seconds,
+                sync=self.config.sync,
             )
             if self.bus is not None:
                 self.bus.subscribe(self.bus.key("keypoints"), callback=self._on_keypoints)

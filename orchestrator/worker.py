@@ -163,7 +163,7 @@ class Worker:
         self._last_frame = frame.frame_number
         pipe = self._pipeline_for(msg.run, frame.intrinsics.K, msg.T_world_cam)
         with self._lock:
-            state = self._state
+            state = msg.joint_state or self._state  # the arms at the frame's capture time, when paired
         V = F = tcp = closed = None
         if state is not None:
             V, F, tcp, closed = self.arms.from_state(state)
