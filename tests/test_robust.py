@@ -482,3 +482,43 @@ def test_malformed_bus_messages_are_logged_once_per_kind(caplog: pytest.LogCaptu
         for data in [b"{not json", b"[1, 2]", b"\xff"] * 10:
             session._on_keypoints(Sample(data))
     assert session._malformed.total == 30 and len(caplog.records) == len(session._malformed.counts)
+
+
+@pytest.mark.slow
+def test_a_real_live_session_is_not_touched_by_fresh_or_recover(tmp_path: Path) -> None:
+    """A real-time session (own process) records; --fresh and recover from other processes are refused and the
+    session's files and journal come out as if they had not been tried."""
+    import time
+
+    cfg = make_config(repeats=3)
+    data = cfg.model_dump(mode="json")
+    data["clock"] = "real"
+    conf = _write_config(tmp_path, type(cfg).model_validate(data))
+    out = tmp_path / "out"
+    session = subprocess.Popen([sys.executable, "-m", "orchestrator.cli", "run", str(conf), "--out", str(out),
+                                "--no-tracking"], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not (list(out.glob("episode_*.mcap")) and list(out.glob("*.active"))):
+            time.sleep(0.05)
+        assert session.poll() is None, "the session ended before the test could try a second writer"
+        finished = {p.name: p.read_bytes() for p in out.glob("episode_*.mcap")}
+        journal = (out / JOURNAL_NAME).read_bytes()
+        for argv in (["recover", str(out)], ["run", str(conf), "--out", str(out), "--fresh", "--no-tracking"]):
+            proc = subprocess.run([sys.executable, "-m", "orchestrator.cli", *argv], cwd=REPO,
+                                  capture_output=True, text=True, timeout=120)
+            assert proc.returncode == 2 and "locked" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+        assert {n: (out / n).read_bytes() for n in finished} == finished
+        assert (out / JOURNAL_NAME).read_bytes().startswith(journal)  # only the session appended
+        _, err = session.communicate(timeout=120)
+    finally:
+        if session.poll() is None:
+            session.kill()
+            session.wait()
+    assert session.returncode == 0, err
+    records = runs(out)
+    assert [r["outcome"] for r in records] == ["done"] * 3
+    for r in records:
+        for name in r["episodes"]:
+            assert read_episode_metadata(out / name)["complete"] is True
+    assert not list(out.glob("*.active")) and not list(out.glob("session.journal.*.jsonl"))
