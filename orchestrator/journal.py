@@ -277,10 +277,18 @@ class Journal:
             raise JournalError(f"{self.path}: the journal is closed")
         data = (json.dumps(record, separators=(",", ":")) + "\n").encode()
         view = memoryview(data)
-        while view:  # one write() in practice; a short write continues where it stopped
-            n = os.write(self._fd, view)
-            view = view[n:]
-        os.fsync(self._fd)
+        start = os.lseek(self._fd, 0, os.SEEK_END)
+        try:
+            while view:  # one write() in practice; a short write continues where it stopped
+                n = os.write(self._fd, view)
+                view = view[n:]
+            os.fsync(self._fd)
+        except OSError as e:
+            try:  # no torn line left behind: the next record starts on a line of its own
+                os.ftruncate(self._fd, start)
+            except OSError:
+                pass
+            raise OSError(e.errno, f"cannot write the journal: {e.strerror}", str(self.path)) from e
 
     def close(self) -> None:
         """Release the lock and close the file (idempotent)."""

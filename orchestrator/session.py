@@ -106,7 +106,14 @@ class Session:
             if self.bus is not None:
                 self.bus.subscribe(self.bus.key("keypoints"), callback=self._on_keypoints)
             items = build_plan(self.config.plan)
-            self._run_plan(items, journal, loop)
+            try:
+                self._run_plan(items, journal, loop)
+            except OSError as e:  # the journal could not be written (a full disk): stop, say where
+                msg = f"{e.filename or self.out_dir}: {e.strerror or e}"
+                self.summary.errors.append(f"session stopped: {msg}")
+                self.summary.stopped_early = f"I/O error: {msg}"
+                self.progress.message(f"error: session stopped: {msg}")
+                self.stop_event.set()
         finally:
             self._finish(journal, t_wall)
         return self.summary
@@ -261,8 +268,9 @@ class Session:
         self._flush_pending(final=False)
         attempt = self._attempts[key] = self._attempts.get(key, 0) + 1
         assert self._journal is not None and self._stream is not None
-        self._journal.run_started(key, plan_pass=self._pass, attempt=attempt, session=self._session_index,
-                                  first_episode=self._stream.next_index)
+        journal, stream = self._journal, self._stream
+        self._with_space(lambda: journal.run_started(key, plan_pass=self._pass, attempt=attempt,
+                                                     session=self._session_index, first_episode=stream.next_index))
         ctx = RunContext(
             config=self.config, clock=self.clock, stream=self._stream, summary=self.summary, progress=self.progress,
             stop_event=self.stop_event, should_stop=self._should_stop, max_seconds=self._max_seconds,
@@ -344,8 +352,10 @@ class Session:
     def _journal_run(self, item: RunItem, outcome: str, reason: str | None, episodes: list[Path],
                      wall: float) -> None:
         """Journal a failed or skipped item now (it is retried on resume whatever its files' state)."""
-        assert self._journal is not None
-        self._journal.run_finished(self._run_record(item, outcome, reason, episodes, wall))
+        journal = self._journal
+        assert journal is not None
+        record = self._run_record(item, outcome, reason, episodes, wall)
+        self._with_space(lambda: journal.run_finished(record))
 
     def _flush_pending(self, final: bool) -> None:
         """Journal the "done" runs whose episode files are all final; with ``final``, the rest as failed."""

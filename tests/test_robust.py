@@ -201,6 +201,31 @@ def test_recover_that_hits_enospc_leaves_the_active_file_and_no_partial_copy(
     assert sorted(p.name for p in tmp_path.iterdir()) == [active.name]  # no .recovering, no 0-byte .mcap
 
 
+def test_a_journal_that_cannot_be_written_stops_the_session_in_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from orchestrator.journal import Journal
+    from orchestrator.progress import Progress
+
+    real_write = Journal._write
+
+    def write(self: Journal, record: dict[str, Any]) -> None:
+        if record.get("type") == "start" and record.get("repeat") == 1:
+            raise OSError(errno.ENOSPC, "cannot write the journal: No space left on device", str(self.path))
+        real_write(self, record)
+
+    monkeypatch.setattr(Journal, "_write", write)
+    lines: list[str] = []
+    progress = Progress(enabled=False)
+    monkeypatch.setattr(progress, "message", lines.append)
+    summary = Session(make_config(repeats=3), tmp_path, SimClock(), progress=progress).run()
+    assert summary.stopped_early == f"I/O error: {tmp_path / JOURNAL_NAME}: cannot write the journal: " \
+                                    "No space left on device"
+    assert [ln for ln in lines if ln.startswith("error:")] == [f"error: session stopped: {summary.stopped_early[11:]}"]
+    assert [r["outcome"] for r in runs(tmp_path)] == ["done"]
+    assert json.loads((tmp_path / "summary.json").read_text())["stopped_early"] == summary.stopped_early
+
+
 def _free_sequence(values_gb: list[float]) -> Any:
     """A free_bytes stand-in returning ``values_gb`` in turn (then the last one) for the out folder."""
     seq = list(values_gb)
