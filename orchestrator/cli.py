@@ -204,6 +204,8 @@ def _unreadable(e: BaseException) -> str:
         return "is a folder (pass the .mcap files in it)"
     if isinstance(e, OSError):
         return f"cannot read: {e.strerror or e}"
+    if isinstance(e, ValueError) and str(e).startswith("the file is empty"):
+        return str(e)
     return f"not a readable MCAP episode file ({type(e).__name__}: {e})"
 
 
@@ -214,6 +216,8 @@ def _inspect_one(path: Path) -> dict[str, Any] | None:
     from tdrecord.episodes import merge_metadata
 
     with open(path, "rb") as f:
+        if os.fstat(f.fileno()).st_size == 0:
+            raise ValueError("the file is empty (0 bytes)")
         reader = make_reader(f)
         summary = reader.get_summary()
         if summary is None or summary.statistics is None:

@@ -67,6 +67,8 @@ class SessionSummary:
             lines.append(f"cut short        : {label}")
         if self.faults_recovered:
             lines.append(f"faults recovered : {self.faults_recovered}")
+        if self.low_disk_pauses:
+            lines.append(f"low-disk pauses  : {self.low_disk_pauses}")
         if self.stopped_early:
             lines.append(f"stopped early    : {self.stopped_early}")
         for e in self.errors + self.runs_failed:
