@@ -180,6 +180,12 @@ class FakeCameraConfig(_CameraBase):
     queue_depth: int = Field(
         6, ge=1, le=64, description="frames kept for a late reader, like a device's frame queue (older ones drop)"
     )
+    clock_offset: float = Field(0.0, ge=-1e6, le=1e6, description="simulated device clock minus host clock at "
+                                "host time 0, s")
+    clock_drift_ppm: float = Field(0.0, ge=-1000.0, le=1000.0, description="simulated device clock rate error, ppm")
+    latency: float = Field(0.0, ge=0.0, le=1.0, description="simulated delay from capture to arrival at the host, s")
+    latency_jitter: float = Field(0.0, ge=0.0, le=0.5, description="simulated extra arrival delay, uniform in "
+                                  "[0, this], s")
     seed: int = 0
 
 

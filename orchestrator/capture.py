@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import logging
 import math
-import shutil
 import threading
 import uuid
 from collections.abc import Callable
@@ -25,32 +24,55 @@ from drivers.base import DeviceError
 from drivers.clock import Clock
 from orchestrator import __version__
 from orchestrator.bus import Bus
-from orchestrator.config import Config
+from orchestrator.config import Config, SyncConfig
+from orchestrator.fsutil import free_bytes
 from orchestrator.health import SessionMonitor
 from orchestrator.live import KeypointGate
 from orchestrator.plan import RunItem
 from orchestrator.programs import PlannedMotion, ProgramRejected, plan_motion
 from orchestrator.progress import Progress
-from orchestrator.recorder import Recorder
+from orchestrator.recorder import Recorder, RecordingFailed
 from orchestrator.station import ARMS, StatePoller, Station
 from orchestrator.summary import SessionSummary
+from orchestrator.timesync import TimeSync
+from tdcommon.transforms import pose_to_input
 from tdcommon.types import RGBDFrame
 from tdcommon.wire import encode_frame, encode_json
 
 log = logging.getLogger(__name__)
 
 
+class LowDisk(RuntimeError):
+    """Free space fell below ``output.min_free_gb``: no episode opens, the open one closes incomplete."""
+
+
 class EpisodeStream:
     """A session's episode files and live streams: every frame and joint state goes to the recorder and,
-    when there is one, the bus; episodes are numbered on from those already in the folder."""
+    when there is one, the bus; episodes are numbered on from those already in the folder.
+
+    Free space is checked before each episode opens and every ``disk_check_seconds`` of frames
+    during one: below ``min_free_gb`` :class:`LowDisk` is raised. Once the recorder has failed
+    (an I/O error) :class:`RecordingFailed` is raised instead of recording or opening anything.
+
+    Every frame is paired with both arms' joint states at its capture time (:mod:`orchestrator.timesync`):
+    the pair is recorded (``/arms/state_at_frame``), sent with the frame on the bus (``joint_state``: the
+    worker's arm mask uses it) and each episode's metadata gets the sync figures (``time_sync``).
+    """
 
     def __init__(self, out_dir: Path, recorder: Recorder, bus: Bus | None, camera_id: str, summary: SessionSummary,
-                 *, min_free_gb: float, stop_event: threading.Event, before_open: Callable[[], None]) -> None:
+                 *, min_free_gb: float, stop_event: threading.Event, before_open: Callable[[], None],
+                 disk_check_seconds: float = 1.0, sync: SyncConfig | None = None) -> None:
         self.out_dir = out_dir
         self.recorder = recorder
         self.bus = bus
         self.summary = summary
         self.min_free_gb = min_free_gb
+        self.disk_check_seconds = disk_check_seconds
+        sc = sync or SyncConfig()
+        self.sync = TimeSync(sc.camera_latency_s, self._tcp_input, sc.offset_window_s, sc.max_pairing_gap_s)
+        self._station: Station | None = None
+        self._last_device_stamp: float | None = None
+        self._frames_since_check = 0
         self.stop_event = stop_event
         self.before_open = before_open  # called before each new file (the journal catches up on done runs)
         self.next_index = next_episode_index(out_dir)
@@ -62,15 +84,26 @@ class EpisodeStream:
         self._frame_key = bus.key("cam", camera_id, "frame") if bus is not None else ""
         self._state_key = bus.key("arms", "state") if bus is not None else ""
 
-    def open_episode(self, meta: dict[str, Any]) -> Path | None:
-        """Open the next episode file; None (and a stop) when the disk is below ``min_free_gb``."""
-        free_gb = shutil.disk_usage(self.out_dir).free / 2**30
+    def disk_low(self) -> str | None:
+        """Why the disk is too full to record (free space below ``min_free_gb``), or None."""
+        free_gb = free_bytes(self.out_dir) / 2**30
         if free_gb < self.min_free_gb:
-            self.stop_event.set()
-            self.summary.stopped_early = (
-                f"only {free_gb:.1f} GiB free in {self.out_dir} (output.min_free_gb = {self.min_free_gb})"
-            )
-            return None
+            return f"only {free_gb:.2f} GiB free in {self.out_dir} (output.min_free_gb = {self.min_free_gb})"
+        return None
+
+    def check_recorder(self) -> None:
+        """Raise RecordingFailed once the recorder has stopped on an I/O error."""
+        if self.recorder.failed is not None:
+            raise RecordingFailed(self.recorder.failed)
+
+    def open_episode(self, meta: dict[str, Any]) -> Path:
+        """Open the next episode file; LowDisk below ``min_free_gb``, RecordingFailed after an I/O error."""
+        self.check_recorder()
+        low = self.disk_low()
+        if low is not None:
+            raise LowDisk(low)
+        self._frames_since_check = 0
+        self.sync.reset_episode()
         self.before_open()
         path = self.out_dir / f"episode_{self.next_index:06d}.mcap"
         self.recorder.open_episode(path, {**meta, "episode_index": self.next_index})
@@ -83,6 +116,7 @@ class EpisodeStream:
         if not self.episode_open:
             return
         meta: dict[str, Any] = {"complete": complete, "fault": fault}  # every episode has both keys
+        meta["time_sync"] = self.sync.episode_report(self._last_device_stamp)
         if station.sim is not None:
             meta.update(station.sim.episode_facts())
         if self.gate is not None:  # keypoints received by now; the worker runs a few frames behind
@@ -98,11 +132,22 @@ class EpisodeStream:
             self.summary.frames_dropped += frame.frame_number - self.last_frame_number - 1
         self.last_frame_number = frame.frame_number
         self.summary.frames_captured += 1
-        self.recorder.frame(frame, station.T_world_cam)
+        self.check_recorder()
+        self._station = station
+        self._last_device_stamp = frame.device_stamp
+        paired = self.sync.pair(frame.frame_number, frame.device_stamp, frame.host_stamp)
+        self.recorder.frame(frame, station.T_world_cam, paired)
         if self.gate is not None:
             self.gate.frame(frame.frame_number, frame.device_stamp)
         if self.bus is not None:
-            self.bus.put(self._frame_key, encode_frame(frame, station.T_world_cam, station.camera.id, self.run_info))
+            self.bus.put(self._frame_key, encode_frame(frame, station.T_world_cam, station.camera.id, self.run_info,
+                                                       joint_state=paired))
+        self._frames_since_check += 1
+        if self.episode_open and self._frames_since_check >= max(1, round(self.disk_check_seconds * station.fps)):
+            self._frames_since_check = 0
+            low = self.disk_low()
+            if low is not None:
+                raise LowDisk(low)
 
     def begin_run(self, run_id: str, info: dict[str, Any], label: str) -> None:
         """Frames from now on belong to run ``run_id``: announced on the bus (the tracker follows it)."""
@@ -115,10 +160,17 @@ class EpisodeStream:
     def sample_states(self, station: Station) -> None:
         """Sample both arms once; record and publish the ``arms/state`` message."""
         msg, tcps = station.sample_state()
+        self.sync.states.add(msg)
         self.summary.state_samples += 1
         self.recorder.arm_state(msg, tcps)
         if self.bus is not None:
             self.bus.put(self._state_key, encode_json(msg))
+
+
+    def _tcp_input(self, arm: str, q: np.ndarray) -> np.ndarray:
+        """u of one arm (6,): TCP position m + rotation vector rad, world frame, for joints q (7,)."""
+        assert self._station is not None
+        return pose_to_input(self._station.kin[arm].tcp_pose(q))
 
 
 def next_episode_index(out_dir: Path) -> int:
@@ -180,7 +232,9 @@ class RunCapture:
     def run(self, retries: int = 2) -> tuple[str, str | None]:
         """Record the run; after a recoverable fault, recover and retry the faulted segment at slow speed.
 
-        Returns ("done" | "stopped" | "skipped" | "failed", the failure or skip message or None).
+        Returns ("done" | "stopped" | "skipped" | "failed" | "low_disk", the failure or skip message or None).
+        A recorder that failed (an I/O error) fails the run; low disk space closes the open episode
+        (``complete: false``) and ends the run as "low_disk" (the session stops or pauses).
         """
         ctx, item, station = self.ctx, self.item, self.station
         resume = Resume()
@@ -232,6 +286,16 @@ class RunCapture:
                 ctx.summary.runs_failed.append(f"{item.label}: {e}")
                 ctx.progress.message(f"error: {item.label}: {e}")
                 return "failed", f"{item.label}: {e}"
+            except LowDisk as e:
+                station.stop_arms()
+                ctx.stream.close_episode(station, False)
+                return "low_disk", f"{item.label}: {e}"
+            except RecordingFailed as e:
+                station.stop_arms()
+                ctx.stream.episode_open = False  # the recorder takes no close any more
+                msg = f"{item.label}: recording failed: {e}"
+                ctx.summary.runs_failed.append(msg)
+                return "failed", msg
 
     def _record(self, resume: Resume) -> bool:
         """Record the run (from ``resume.waypoint`` after a fault) as whole episodes.
@@ -279,9 +343,7 @@ class RunCapture:
                         raise RunPaused
                     chunk += 1
                     episode_frames = 0
-                    path = stream.open_episode({**base_meta, "chunk_index": chunk})
-                    if path is not None:
-                        self.episodes.append(path)
+                    self.episodes.append(stream.open_episode({**base_meta, "chunk_index": chunk}))
                 if k == settle_frames:
                     t_start = self._start_motion(motion)
                 if t_start is not None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import signal
 import sys
 import threading
@@ -22,11 +23,16 @@ FRESH_HELP = (
 )
 
 
-def _install_signal_handlers(stop: threading.Event) -> None:
-    """First SIGINT/SIGTERM: finish the current frame, close episodes, stop. Second: abort."""
+def _install_signal_handlers(stop: threading.Event, finishing: threading.Event | None = None) -> None:
+    """First SIGINT/SIGTERM: finish the current frame, close episodes, stop. Second: abort the recording,
+    unless the session is already writing its last files and the summary (``finishing``): those finish."""
 
     def handler(signum: int, _frame: Any) -> None:
         if stop.is_set():
+            if finishing is not None and finishing.is_set():
+                print(f"\n{signal.Signals(signum).name}: already stopping; writing the last episode files and "
+                      "summary.json", file=sys.stderr)
+                return
             raise KeyboardInterrupt
         print(f"\n{signal.Signals(signum).name}: stopping after the current frame (again to abort)", file=sys.stderr)
         stop.set()
@@ -73,8 +79,8 @@ def run_session(
     except JournalError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    stop = threading.Event()
-    _install_signal_handlers(stop)
+    stop, finishing = threading.Event(), threading.Event()
+    _install_signal_handlers(stop, finishing)
     progress = Progress(enabled=not quiet)
     if journal.moved_aside is not None:
         progress.message(f"--fresh: moved the previous journal aside to {journal.moved_aside.name}; "
@@ -90,8 +96,14 @@ def run_session(
                 return 2
         progress.message(f"recording to {out_dir}")
         session = Session(config, out_dir, clock, bus=bus, progress=progress, stop_event=stop, journal=journal,
-                          with_worker=with_worker and bus is not None and config.tracking.enabled)
-        summary = session.run(max_seconds=max_seconds, loop=loop)
+                          with_worker=with_worker and bus is not None and config.tracking.enabled,
+                          finishing=finishing)
+        try:
+            summary = session.run(max_seconds=max_seconds, loop=loop)
+        except KeyboardInterrupt:
+            print(f"error: {out_dir}: aborted by a second signal; summary.json says what was written "
+                  f"(unfinished files: `trackdeform recover {out_dir}`)", file=sys.stderr)
+            return 2
     finally:
         journal.close()  # the session closes it too; this covers a failure before it ran
         if bus is not None:
@@ -155,28 +167,64 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    """Print what an episode file holds: metadata and message counts per channel."""
-    from mcap.reader import make_reader
+    """Print what episode files hold: metadata and message counts per channel.
 
-    from tdrecord import read_episode_metadata
-
+    A file that cannot be read gets one ``error: FILE: ...`` line on stderr and the next file is
+    shown; the exit code is 2 when any file failed.
+    """
+    failed = 0
     for p in args.files:
         path = Path(p)
-        with open(path, "rb") as f:
-            summary = make_reader(f).get_summary()
-        if summary is None or summary.statistics is None:
+        try:
+            info = _inspect_one(path)
+        except Exception as e:  # any broken file: one line naming it, then the next file
+            print(f"error: {path}: {_unreadable(e)}", file=sys.stderr)
+            failed += 1
+            continue
+        if info is None:
             print(f"{path}: no summary (unfinished file? run `trackdeform recover {path.parent}`)")
             continue
-        st = summary.statistics
-        meta = read_episode_metadata(path)
-        info: dict[str, Any] = {
-            "file": str(path),
-            "duration_s": (st.message_end_time - st.message_start_time) / 1e9,
-            "channels": {summary.channels[c].topic: n for c, n in sorted(st.channel_message_counts.items())},
-            "metadata": {k: v for k, v in meta.items() if k not in ("calibration", "segments")},
-        }
-        print(json.dumps(info, indent=2) if args.json else _pretty(info))
+        print(json.dumps(info, indent=2) if args.json else _pretty(info), flush=True)
+    if failed:
+        print(f"error: {failed} of {len(args.files)} file(s) could not be read", file=sys.stderr)
+        return 2
     return 0
+
+
+def _unreadable(e: BaseException) -> str:
+    """The one-line reason an episode file could not be read."""
+    if isinstance(e, FileNotFoundError):
+        return "no such file"
+    if isinstance(e, IsADirectoryError):
+        return "is a folder (pass the .mcap files in it)"
+    if isinstance(e, OSError):
+        return f"cannot read: {e.strerror or e}"
+    if isinstance(e, ValueError) and str(e).startswith("the file is empty"):
+        return str(e)
+    return f"not a readable MCAP episode file ({type(e).__name__}: {e})"
+
+
+def _inspect_one(path: Path) -> dict[str, Any] | None:
+    """What :func:`cmd_inspect` shows of one file; None for a file without a summary (unfinished)."""
+    from mcap.reader import make_reader
+
+    from tdrecord.episodes import merge_metadata
+
+    with open(path, "rb") as f:
+        if os.fstat(f.fileno()).st_size == 0:
+            raise ValueError("the file is empty (0 bytes)")
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        if summary is None or summary.statistics is None:
+            return None
+        meta = merge_metadata(reader.iter_metadata()) or {}
+    st = summary.statistics
+    return {
+        "file": str(path),
+        "duration_s": (st.message_end_time - st.message_start_time) / 1e9,
+        "channels": {summary.channels[c].topic: n for c, n in sorted(st.channel_message_counts.items())},
+        "metadata": {k: v for k, v in meta.items() if k not in ("calibration", "segments")},
+    }
 
 
 def _pretty(info: dict[str, Any]) -> str:
@@ -187,15 +235,29 @@ def _pretty(info: dict[str, Any]) -> str:
 
 
 def cmd_recover(args: argparse.Namespace) -> int:
-    """Recover or quarantine unfinished ``.mcap.active`` files in a folder."""
+    """Recover or quarantine unfinished ``.mcap.active`` files in a folder no live session holds.
+
+    2 for a missing folder or one a live session holds (nothing is touched), 1 when a file could
+    not be recovered (the line says why: e.g. too little free space), else 0.
+    """
+    from orchestrator.journal import FolderLock, JournalError
     from orchestrator.recorder import recover_active
 
-    results = recover_active(Path(args.directory))
+    directory = Path(args.directory)
+    if not directory.is_dir():
+        print(f"error: {directory}: no such folder", file=sys.stderr)
+        return 2
+    try:
+        with FolderLock(directory):
+            results = recover_active(directory)
+    except JournalError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     for path, outcome in results:
         print(f"{path}: {outcome}")
     if not results:
         print(f"{args.directory}: nothing to recover")
-    return 0
+    return 1 if any(outcome.startswith("not recovered") for _, outcome in results) else 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -268,6 +330,10 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # `trackdeform inspect ... | head`: the reader left; not an error of ours
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # so the interpreter's final flush does not fail again
+        return 0
 
 
 if __name__ == "__main__":

@@ -74,14 +74,14 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 def cmd_validate(args: argparse.Namespace) -> int:
     """Load FILE, time it at every speed and run the safety checks; 0 when all pass."""
-    from trajectories.program import ProgramError
+    from trajectories.program import ProgramError, ProgramUnreadable
     from trajectories.safety import check_program
 
     try:
         program = _load(args.file)
     except ProgramError as e:
-        print(e, file=sys.stderr)
-        return 1
+        print(f"error: {e}" if isinstance(e, ProgramUnreadable) else e, file=sys.stderr)
+        return 2 if isinstance(e, ProgramUnreadable) else 1
     print(f"{program.name} ({program.category}): {len(program.waypoints)} waypoints, within the joint limits")
     bad = 0
     for speed in SPEEDS:
@@ -100,13 +100,13 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 def cmd_time(args: argparse.Namespace) -> int:
     """Print per-segment requested/actual durations, the total and the peak velocity ratio."""
-    from trajectories.program import ProgramError
+    from trajectories.program import ProgramError, ProgramUnreadable
 
     try:
         timed = _timed(args, args.speed)
     except (ProgramError, ValueError) as e:
-        print(e, file=sys.stderr)
-        return 1
+        print(f"error: {e}" if isinstance(e, ProgramUnreadable) else e, file=sys.stderr)
+        return 2 if isinstance(e, ProgramUnreadable) else 1
     rep = timing_report(timed)
     if args.json:
         print(json.dumps(rep, indent=2))

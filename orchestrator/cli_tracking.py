@@ -8,6 +8,8 @@ import signal
 import sys
 import threading
 import time
+import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -176,13 +178,17 @@ def cmd_track(args: argparse.Namespace) -> int:
     from orchestrator.config import load_config
     from orchestrator.worker import tracking_params
     from tdcommon.objects import DIMENSION
-    from tdrecord import DatasetError, read_sequence, write_reference_npz
+    from tdrecord import DatasetError, read_sequence, verify_sequence_files, write_reference_npz
     from tracking.tracker import smooth_symmetric
 
     try:
+        verify_sequence_files(args.input)  # a corrupt npz is refused before any frame is tracked
         seq = read_sequence(args.input)
     except (DatasetError, FileNotFoundError) as e:
         print(f"error: {e}", file=sys.stderr)
+        return 2
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+        print(f"error: {args.input}: cannot be read ({type(e).__name__}: {e})", file=sys.stderr)
         return 2
     category = args.category or seq.metadata.get("category")
     config = load_config(args.config)
@@ -192,6 +198,9 @@ def cmd_track(args: argparse.Namespace) -> int:
     except RuntimeError as e:
         print(f"error: {args.input}: {e}", file=sys.stderr)
         return 1
+    except (DatasetError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:  # damage found mid-file
+        print(f"error: {args.input}: unreadable part ({type(e).__name__}: {e})", file=sys.stderr)
+        return 2
     raw, topo = result["raw"], result["topology"]
     final = raw.copy()
     ok = ~np.isnan(raw).any(axis=(1, 2))

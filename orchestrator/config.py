@@ -178,7 +178,28 @@ class OutputConfig(StrictModel):
     compression: Literal["zstd", "lz4", "none"] = Field("zstd", description="MCAP chunk compression")
     color: ColorOutputConfig = Field(default_factory=ColorOutputConfig)
     depth: DepthOutputConfig = Field(default_factory=DepthOutputConfig)
-    min_free_gb: float = Field(2.0, ge=0.0, description="stop cleanly below this free disk space, GiB")
+    min_free_gb: float = Field(
+        2.0, ge=0.0, description="below this free disk space, GiB, no episode opens and the open one closes"
+    )
+    on_low_disk: Literal["stop", "pause"] = Field(
+        "stop", description="below min_free_gb: stop the session, or pause (arms at rest) until space returns"
+    )
+    disk_check_seconds: float = Field(1.0, gt=0.0, le=60.0, description="free space is checked this often, s")
+    low_disk_poll_seconds: float = Field(10.0, gt=0.0, le=600.0, description="paused: check for space this often, s")
+
+
+class SyncConfig(StrictModel):
+    """Camera–arm time sync: frames paired with the joint states at their capture time (orchestrator.timesync)."""
+
+    camera_latency_s: float = Field(
+        0.0, ge=0.0, le=1.0,
+        description="fixed delay from a frame's capture to its arrival at the host, s, beyond the clock offset "
+                    "(timestamps cannot tell it from the offset: measure it once per camera)",
+    )
+    offset_window_s: float = Field(30.0, ge=2.0, le=3600.0, description="the clock offset and drift are fitted "
+                                   "over this much recent device time, s")
+    max_pairing_gap_s: float = Field(0.05, gt=0.0, le=1.0, description="a frame with no joint state this close to "
+                                     "its capture time is recorded unpaired, s")
 
 
 class Config(StrictModel):
@@ -189,6 +210,7 @@ class Config(StrictModel):
     tracking: TrackingConfig = Field(default_factory=TrackingConfig)
     bus: BusConfig = Field(default_factory=BusConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
+    sync: SyncConfig = Field(default_factory=SyncConfig)
     clock: Literal["real", "sim"] = Field("real", description="'sim': simulated time (tests), fake devices only")
 
     @model_validator(mode="after")
@@ -279,9 +301,13 @@ def load_config(path: str | Path, overrides: dict[str, Any] | None = None) -> Co
     """Read and validate a YAML config; ``overrides`` are dotted keys set after reading."""
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except OSError as e:
         raise ConfigError(f"{path}: cannot read config: {e.strerror}") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(
+            f"{path}: not UTF-8 text (byte 0x{e.object[e.start]:02x} at offset {e.start}); a config is a YAML file"
+        ) from None
     try:
         root = yaml.compose(text)
         data = yaml.safe_load(text)

@@ -202,16 +202,13 @@ class Journal:
         fp = fingerprint(description)
         moved: Path | None = None
         if fresh and path.exists():
-            moved = _move_aside(path)
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o644)
-        try:
+            old = _lock(path)  # a live session's journal is never moved: it holds this lock
             try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
-                raise JournalError(
-                    f"{path}: another session is recording into this folder now (the journal is locked); "
-                    "wait for it to finish, or record to another folder with --out DIR"
-                ) from None
+                moved = _move_aside(path)
+            finally:
+                os.close(old)
+        fd = _lock(path)
+        try:
             contents = read_journal(path)
             if contents.torn_bytes:
                 os.ftruncate(fd, contents.valid_bytes)  # the next record must start on a line of its own
@@ -280,13 +277,70 @@ class Journal:
             raise JournalError(f"{self.path}: the journal is closed")
         data = (json.dumps(record, separators=(",", ":")) + "\n").encode()
         view = memoryview(data)
-        while view:  # one write() in practice; a short write continues where it stopped
-            n = os.write(self._fd, view)
-            view = view[n:]
-        os.fsync(self._fd)
+        start = os.lseek(self._fd, 0, os.SEEK_END)
+        try:
+            while view:  # one write() in practice; a short write continues where it stopped
+                n = os.write(self._fd, view)
+                view = view[n:]
+            os.fsync(self._fd)
+        except OSError as e:
+            try:  # no torn line left behind: the next record starts on a line of its own
+                os.ftruncate(self._fd, start)
+            except OSError:
+                pass
+            raise OSError(e.errno, f"cannot write the journal: {e.strerror}", str(self.path)) from e
 
     def close(self) -> None:
         """Release the lock and close the file (idempotent)."""
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+
+LOCKED_HINT = "wait for it to finish, or record to another folder with --out DIR"
+
+
+def _lock(path: Path) -> int:
+    """Open ``path`` (created if missing) and take its exclusive lock; JournalError when a session holds it."""
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise JournalError(
+            f"{path}: another session is recording into this folder now (the journal is locked); {LOCKED_HINT}"
+        ) from None
+    return fd
+
+
+class FolderLock:
+    """The journal lock of an output folder, for a tool that writes there without a session (``recover``).
+
+    ``with FolderLock(out_dir):`` raises JournalError while a live session holds the folder. A missing
+    journal is not created: a session always locks one, so a folder without it has no live session.
+    """
+
+    def __init__(self, out_dir: Path) -> None:
+        self.path = Path(out_dir) / JOURNAL_NAME
+        self._fd: int | None = None
+
+    def __enter__(self) -> FolderLock:
+        try:
+            fd = os.open(self.path, os.O_RDONLY)
+        except FileNotFoundError:
+            return self
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise JournalError(
+                f"{self.path.parent}: a live session is recording into this folder (its journal is locked); "
+                "its unfinished files are being written, not left by a crash. Run this after the session ends"
+            ) from None
+        self._fd = fd
+        return self
+
+    def __exit__(self, *exc: object) -> None:
         if self._fd is not None:
             os.close(self._fd)
             self._fd = None

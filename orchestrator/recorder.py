@@ -8,12 +8,22 @@ Channels (Foxglove schemas where one fits, so a file opens in Foxglove):
 - ``/cam/<id>/calibration``  foxglove.CameraCalibration (frame ``cam``)
 - ``/cam/<id>/frame_info``  JSON {frame_number, device_stamp, host_stamp, color_keyframe}
   (every JSON channel has a JSON Schema with its properties: tdrecord.channels)
-- ``/arms/state``  JSON (see tdcommon.wire);  ``/tf``  foxglove.FrameTransforms (world -> cam, TCPs)
-- ``/keypoints``  JSON (trackdeform.Keypoints: the live message, points as {x, y, z});  ``/keypoints/scene``  foxglove.SceneUpdate
+- ``/arms/state``  JSON (see tdcommon.wire);  ``/arms/state_at_frame``  JSON: both arms' joints interpolated
+  at each frame's capture time and u_t from them (orchestrator.timesync), with ``frame_number``
+- ``/tf``  foxglove.FrameTransforms (world -> cam, TCPs)
+- ``/keypoints``  JSON (trackdeform.Keypoints: the live message, points as {x, y, z})
+- ``/keypoints/scene``  foxglove.SceneUpdate
 - ``/ground_truth/keypoints``  JSON (mock mode)
 
-and a metadata record ``episode`` whose values are JSON strings. Leftover ``.active`` files
-(after a crash or SIGKILL) are rewritten from their readable records by :func:`recover_active`.
+and metadata records whose values are JSON strings: ``episode_open`` (what was known when the episode
+opened: object, program, speed, index, calibration...), written and flushed first so a file cut by a
+crash still has it, and ``episode`` (everything, with ``complete`` / ``fault`` and the frame counts),
+written on close. Readers merge the two (``episode`` wins). Leftover ``.active`` files (after a crash or
+SIGKILL) are rewritten from their readable records by :func:`recover_active`, which keeps
+``episode_open`` and adds ``complete: false``.
+
+An I/O error (a full disk: ENOSPC) stops the :class:`Recorder` for good: it keeps what it wrote,
+opens nothing more and reports the failure in ``Recorder.failed``; a close that failed stays failed.
 """
 
 from __future__ import annotations
@@ -29,12 +39,12 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from orchestrator.config import ColorOutputConfig, DepthOutputConfig
-from orchestrator.fsutil import fsync_dir
+from orchestrator.fsutil import free_bytes, fsync_dir
 from tdcommon.types import RGBDFrame
 from tdcommon.wire import ground_truth_to_json
 from tdrecord.channels import SCHEMAS, keypoints_record
 from tdrecord.codecs import SCHEMA_COMPRESSED, SCHEMA_RAW, SCHEMA_VIDEO, ColorEncoder, DepthEncoder, EncodedImage
-from tdrecord.episodes import ACTIVE_SUFFIX
+from tdrecord.episodes import ACTIVE_SUFFIX, CLOSE_METADATA, OPEN_METADATA
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +54,14 @@ _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none"
 
 def _ns(t: float) -> int:
     return max(0, int(round(t * 1e9)))
+
+
+class RecordingFailed(RuntimeError):
+    """The recorder hit an I/O error (e.g. a full disk) and records nothing more; the message says where."""
+
+
+def _json_values(meta: dict[str, Any]) -> dict[str, str]:
+    return {k: json.dumps(v) for k, v in meta.items()}
 
 
 def _quats_xyzw(R: np.ndarray) -> np.ndarray:
@@ -58,11 +76,34 @@ class EpisodeWriter:
 
     Colour and depth are encoded as ``color`` / ``depth`` say (defaults: H.264 and 16-bit PNG); with an
     ``executor`` depth is encoded on it while colour is encoded on the calling thread.
+    ``metadata`` (the open-time facts) is written as the ``episode_open`` record and flushed before
+    any frame, so recovery of a file cut short keeps it.
     """
 
     def __init__(self, path: Path, camera_id: str, compression: str = "zstd",
                  color: ColorOutputConfig | None = None, depth: DepthOutputConfig | None = None,
-                 executor: Executor | None = None, fps: float = 30.0) -> None:
+                 executor: Executor | None = None, fps: float = 30.0, *,
+                 metadata: dict[str, Any] | None = None) -> None:
+        self.path = Path(path)
+        self.active_path = self.path.with_name(self.path.name.removesuffix(".mcap") + ACTIVE_SUFFIX)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.path.exists():
+            raise FileExistsError(f"{self.path} exists already; refusing to overwrite a finished episode")
+        self._file = open(self.active_path, "wb")  # noqa: SIM115 - closed in close()/abort()
+        self.closed = False
+        self.failed: str | None = None  # why close() failed; a failed writer never reports its path as finished
+        self.color_config = color or ColorOutputConfig()
+        self.depth_config = depth or DepthOutputConfig()
+        self._executor = executor
+        try:
+            self._start(camera_id, compression, metadata, fps)
+        except BaseException:
+            self._file.close()
+            self.closed = True
+            self.active_path.unlink(missing_ok=True)  # nothing readable in it yet
+            raise
+
+    def _start(self, camera_id: str, compression: str, metadata: dict[str, Any] | None, fps: float) -> None:
         from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
         from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
         from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
@@ -71,14 +112,10 @@ class EpisodeWriter:
         from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
         from mcap_protobuf.schema import build_file_descriptor_set
 
-        self.path = Path(path)
-        self.active_path = self.path.with_name(self.path.name.removesuffix(".mcap") + ACTIVE_SUFFIX)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        if self.path.exists():
-            raise FileExistsError(f"{self.path} exists already; refusing to overwrite a finished episode")
-        self._file = open(self.active_path, "wb")  # noqa: SIM115 - closed in close()/abort()
         self._w = Writer(self._file, compression=_COMPRESSION[compression], chunk_size=4 << 20)
         self._w.start(profile="", library="trackdeform3d")
+        if metadata is not None:
+            self._w.add_metadata(OPEN_METADATA, _json_values(metadata))
         self._channels: dict[str, int] = {}
         self._seq: dict[str, int] = {}
         self.camera_id = camera_id
@@ -86,14 +123,10 @@ class EpisodeWriter:
         self._last_tf = -np.inf
         self.first_frame: int | None = None
         self.last_frame: int | None = None
-        self.closed = False
-        self.color_config = color or ColorOutputConfig()
-        self.depth_config = depth or DepthOutputConfig()
         c = self.color_config
         self._color_enc = ColorEncoder(c.codec, crf=c.crf, preset=c.preset, gop=c.gop, jpeg_quality=c.jpeg_quality,
                                        fps=fps)
         self._depth_enc = DepthEncoder(self.depth_config.codec)
-        self._executor = executor
         self._image_cls = {SCHEMA_RAW: RawImage, SCHEMA_COMPRESSED: CompressedImage, SCHEMA_VIDEO: CompressedVideo}
         color_cls = {"h264": CompressedVideo, "jpeg": CompressedImage, "raw": RawImage}[c.codec]
         depth_cls = {"png": CompressedImage, "raw": RawImage}[self.depth_config.codec]
@@ -115,6 +148,8 @@ class EpisodeWriter:
             (f"{cam}/calibration", calib, "protobuf"),
             (f"{cam}/frame_info", js("trackdeform.FrameInfo", SCHEMAS["trackdeform.FrameInfo"]), "json"),
             ("/arms/state", js("trackdeform.ArmState", SCHEMAS["trackdeform.ArmState"]), "json"),
+            ("/arms/state_at_frame", js("trackdeform.ArmStateAtFrame", SCHEMAS["trackdeform.ArmStateAtFrame"]),
+             "json"),
             ("/tf", tf, "protobuf"),
             ("/keypoints", js("trackdeform.Keypoints", SCHEMAS["trackdeform.Keypoints"]), "json"),
             ("/keypoints/scene", scene, "protobuf"),
@@ -123,6 +158,7 @@ class EpisodeWriter:
             self._channels[topic] = self._w.register_channel(topic, enc, sid)
             self._seq[topic] = 0
         self._RawImage, self._Calib, self._TF, self._Scene = RawImage, CameraCalibration, FrameTransforms, SceneUpdate
+        self._file.flush()  # the header and episode_open reach the disk before any frame
 
     # ------------------------------------------------------------------ writing
     def _add(self, topic: str, data: bytes, t: float, publish: float | None = None) -> None:
@@ -231,6 +267,10 @@ class EpisodeWriter:
             self._last_tf = t
             self.write_transforms(t, tcp_poses)
 
+    def write_frame_state(self, paired: dict[str, Any], t: float) -> None:
+        """The arms' state at a frame's capture time (``t``: the frame's log time, s)."""
+        self._add_json("/arms/state_at_frame", paired, t)
+
     def write_keypoints(self, msg: dict[str, Any], t: float) -> None:
         """Tracked keypoints (JSON, points as {x, y, z}) and a SceneUpdate with spheres and edge lines."""
         self._add_json("/keypoints", keypoints_record(msg), t)
@@ -238,33 +278,53 @@ class EpisodeWriter:
 
     # ------------------------------------------------------------------ closing
     def close(self, metadata: dict[str, Any]) -> Path:
-        """Write metadata, finish, fsync and rename to the final name; returns it."""
+        """Write metadata, finish, fsync and rename to the final name; returns it.
+
+        Raises RecordingFailed when the file could not be finished (now or in an earlier call): it then
+        stays ``.active`` for :func:`recover_active`, and is never reported as finished.
+        """
+        if self.failed is not None:
+            raise RecordingFailed(self.failed)
         if self.closed:
             return self.path
         self._color_enc.close()
         meta = dict(metadata)
         meta.update(n_frames=self.n_frames, first_frame=self.first_frame, last_frame=self.last_frame,
                     image_encoding={"color": self.color_config.model_dump(), "depth": self.depth_config.model_dump()})
-        self._w.add_metadata("episode", {k: json.dumps(v) for k, v in meta.items()})
-        self._w.finish()
-        self._file.flush()
-        os.fsync(self._file.fileno())
-        self._file.close()
-        os.replace(self.active_path, self.path)
-        fsync_dir(self.path.parent)
+        try:
+            self._w.add_metadata(CLOSE_METADATA, _json_values(meta))
+            self._w.finish()
+            self._file.flush()
+            os.fsync(self._file.fileno())
+            self._file.close()
+            os.replace(self.active_path, self.path)
+            fsync_dir(self.path.parent)
+        except Exception as e:
+            self.failed = f"{self.path.name}: could not be finished ({type(e).__name__}: {e}); left as .active"
+            self.abort()
+            raise RecordingFailed(self.failed) from e
         self.closed = True
         return self.path
 
     def abort(self) -> None:
-        """Stop writing without finishing; the ``.active`` file stays for :func:`recover_active`."""
-        if not self.closed:
-            self._color_enc.close()
+        """Stop writing without finishing; the ``.active`` file stays for :func:`recover_active`.
+
+        Never raises: a flush that fails (a full disk) loses only the unflushed tail.
+        """
+        if self.closed:
+            return
+        self.closed = True
+        self._color_enc.close()
+        try:
+            self._file.flush()
+            os.fsync(self._file.fileno())
+        except OSError as e:
+            log.warning("%s: unflushed data lost (%s)", self.active_path.name, e)
+        finally:
             try:
-                self._file.flush()
-                os.fsync(self._file.fileno())
-            finally:
                 self._file.close()
-                self.closed = True
+            except OSError:
+                pass
 
 
 def _finite_or_null(obj: Any) -> Any:  # noqa: ANN401 - any JSON value
@@ -315,47 +375,87 @@ def _scene_update(SceneUpdate: Any, msg: dict[str, Any], t: float) -> Any:
 
 
 # ---------------------------------------------------------------------- reading and recovery
+RECOVERY_MARGIN = 1 << 20  # bytes kept free beyond a recovered copy's size
+
+
+class RecoveryError(RuntimeError):
+    """An unfinished file that cannot be recovered now (e.g. too little free space); it is left untouched."""
+
+
 def recover_active(directory: Path, quarantine: str = "quarantine") -> list[tuple[Path, str]]:
     """Turn leftover ``*.mcap.active`` files into valid ``*.mcap`` files, or quarantine them.
 
     Every record the stream reader can still read (up to the last complete chunk) is rewritten
-    into a new file with ``recovered: true`` in its metadata; a file with no readable message is
-    moved to ``<directory>/<quarantine>/``. Returns ``(path, outcome)`` pairs.
+    into a new file. Its ``episode`` metadata is the open-time ``episode_open`` record merged with
+    the ``episode`` record if the writer got that far, plus ``recovered: true`` and, when the
+    episode never closed, ``complete: false``. A file with no readable message is moved to
+    ``<directory>/<quarantine>/``. A finished file is never replaced. When the disk has too little
+    space for the copy (its size plus 1 MiB), or writing it fails, the ``.active`` file is left as
+    it was and the outcome says why. The caller must hold the folder's journal lock (a live session's
+    open file is not to be touched). Returns ``(path, outcome)`` pairs.
     """
+    results = []
+    for active in sorted(Path(directory).glob(f"*{ACTIVE_SUFFIX}")):
+        try:
+            results.append(_recover_one(active, Path(directory), quarantine))
+        except RecoveryError as e:
+            log.warning("%s", e)
+            results.append((active, f"not recovered: {e}"))
+    return results
+
+
+def _recover_one(active: Path, directory: Path, quarantine: str) -> tuple[Path, str]:
     from mcap.records import Channel, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader
 
-    results = []
-    for active in sorted(Path(directory).glob(f"*{ACTIVE_SUFFIX}")):
-        final = active.with_name(active.name.removesuffix(ACTIVE_SUFFIX) + ".mcap")
-        schemas: dict[int, Schema] = {}
-        channels: dict[int, Channel] = {}
-        messages: list[Message] = []
-        metadata: list[Metadata] = []
-        error = ""
-        try:
-            with open(active, "rb") as f:
-                for rec in StreamReader(f, skip_magic=False).records:
-                    if isinstance(rec, Schema):
-                        schemas[rec.id] = rec
-                    elif isinstance(rec, Channel):
-                        channels[rec.id] = rec
-                    elif isinstance(rec, Message):
-                        messages.append(rec)
-                    elif isinstance(rec, Metadata):
-                        metadata.append(rec)
-        except Exception as e:  # truncated tail: keep what was read
-            error = f"{type(e).__name__}: {e}"
-        messages = [m for m in messages if m.channel_id in channels]
-        if not messages or final.exists():
-            qdir = Path(directory) / quarantine
-            qdir.mkdir(exist_ok=True)
-            os.replace(active, qdir / active.name)
-            reason = "a finished file of that name exists" if final.exists() else "no readable message"
-            log.warning("quarantined %s (%s)", active, reason)
-            results.append((qdir / active.name, f"quarantined: {reason}"))
-            continue
-        tmp = final.with_name(final.name + ".recovering")
+    final = active.with_name(active.name.removesuffix(ACTIVE_SUFFIX) + ".mcap")
+    tmp = final.with_name(final.name + ".recovering")
+    tmp.unlink(missing_ok=True)  # left by an earlier recovery that was cut short
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    messages: list[Message] = []
+    opened: dict[str, str] = {}
+    closed: dict[str, str] = {}
+    error = ""
+    try:
+        with open(active, "rb") as f:
+            for rec in StreamReader(f, skip_magic=False).records:
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec
+                elif isinstance(rec, Message):
+                    messages.append(rec)
+                elif isinstance(rec, Metadata):
+                    if rec.name == OPEN_METADATA:
+                        opened.update(rec.metadata)
+                    elif rec.name == CLOSE_METADATA:
+                        closed.update(rec.metadata)
+    except FileNotFoundError:
+        raise RecoveryError(f"{active}: vanished while being read (another process is writing this folder)") from None
+    except Exception as e:  # truncated tail: keep what was read
+        error = f"{type(e).__name__}: {e}"
+    messages = [m for m in messages if m.channel_id in channels]
+    if not messages or final.exists():
+        qdir = directory / quarantine
+        qdir.mkdir(exist_ok=True)
+        os.replace(active, qdir / active.name)
+        reason = "a finished file of that name exists" if final.exists() else "no readable message"
+        log.warning("quarantined %s (%s)", active, reason)
+        return qdir / active.name, f"quarantined: {reason}"
+    need = active.stat().st_size + RECOVERY_MARGIN
+    free = free_bytes(directory)
+    if free < need:
+        raise RecoveryError(
+            f"{active}: needs about {need / 2**20:.1f} MiB free for the recovered copy, {directory} has "
+            f"{free / 2**20:.1f} MiB; free some space and run `trackdeform recover {directory}` again "
+            "(the file is left as it is)"
+        )
+    meta: dict[str, str] = {**opened, **closed}
+    if not closed:
+        meta.update(complete=json.dumps(False), fault=json.dumps(False))
+    meta.update(recovered=json.dumps(True), recovery_note=json.dumps(error or "complete stream"))
+    try:
         with open(tmp, "wb") as out:
             w = Writer(out, compression=CompressionType.ZSTD)
             w.start(profile="", library="trackdeform3d (recovered)")
@@ -366,21 +466,21 @@ def recover_active(directory: Path, quarantine: str = "quarantine") -> list[tupl
             }
             for m in messages:
                 w.add_message(cid_map[m.channel_id], m.log_time, m.data, m.publish_time, m.sequence)
-            meta: dict[str, str] = {}
-            for md in metadata:
-                if md.name == "episode":
-                    meta.update(md.metadata)
-            meta.update(recovered="true", recovery_note=json.dumps(error or "complete stream"))
-            w.add_metadata("episode", meta)
+            if opened:
+                w.add_metadata(OPEN_METADATA, opened)
+            w.add_metadata(CLOSE_METADATA, meta)
             w.finish()
             out.flush()
             os.fsync(out.fileno())
-        os.replace(tmp, final)
-        active.unlink()
-        fsync_dir(final.parent)
-        log.warning("recovered %s (%d messages)", final, len(messages))
-        results.append((final, f"recovered {len(messages)} messages"))
-    return results
+        os.link(tmp, final)  # fails if a finished file of that name appeared: never replaced
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        raise RecoveryError(f"{active}: could not write the recovered copy ({e}); the file is left as it is") from e
+    tmp.unlink()
+    active.unlink(missing_ok=True)
+    fsync_dir(final.parent)
+    log.warning("recovered %s (%d messages)", final, len(messages))
+    return final, f"recovered {len(messages)} messages"
 
 
 class Recorder:
@@ -391,6 +491,13 @@ class Recorder:
     frames (the tracker runs behind the camera) still land in it. Images are encoded here, off the
     capture thread: colour on this thread, depth on one helper thread at the same time.
     ``cpu_seconds`` is the CPU time these two threads have used (encoding and writing).
+
+    frames (the tracker runs behind the camera) still land in it.
+
+    The first I/O error (OSError: a full disk, a vanished mount) sets ``failed`` and the recorder
+    stops for good: the open episode is left ``.active`` with what reached the disk, episodes in
+    their grace period are still finished if the disk allows, and every later open / frame / state
+    / keypoint is dropped. Only files whose close succeeded are in ``finished``.
     """
 
     def __init__(self, camera_id: str, compression: str = "zstd", maxsize: int = 60, close_grace: int = 15,
@@ -411,23 +518,26 @@ class Recorder:
         self.close_grace = close_grace
         self.finished: list[Path] = []
         self.errors: list[str] = []
+        self.failed: str | None = None  # the I/O error that stopped the recorder
         self.keypoints_written = 0
         self.keypoints_unmatched = 0
+        self.dropped_after_failure = 0
         self._q: queue.Queue = queue.Queue(maxsize=maxsize)
         self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
         self._current: EpisodeWriter | None = None
         self._closing: list[tuple[EpisodeWriter, dict[str, Any], int]] = []
         self._current_meta: dict[str, Any] = {}
+        self._logged: set[tuple[str, str]] = set()
         self._thread.start()
 
     # ------------------------------------------------------------ producer side (any thread)
     def open_episode(self, path: Path, metadata: dict[str, Any]) -> None:
-        """Start a new episode file (the previous one must have been closed)."""
+        """Start a new episode file (the previous one must have been closed); ``metadata`` is written at once."""
         self._q.put(("open", path, metadata))
 
-    def frame(self, frame: RGBDFrame, T_world_cam: np.ndarray) -> None:
-        """Record a frame in the current episode."""
-        self._q.put(("frame", frame, T_world_cam))
+    def frame(self, frame: RGBDFrame, T_world_cam: np.ndarray, paired: dict[str, Any] | None = None) -> None:
+        """Record a frame in the current episode, with the arms' state at its capture time if paired."""
+        self._q.put(("frame", frame, T_world_cam, paired))
 
     def arm_state(self, state: dict[str, Any], tcp_poses: dict[str, np.ndarray] | None = None) -> None:
         """Record one joint-state sample of both arms."""
@@ -455,22 +565,35 @@ class Recorder:
             self.cpu_seconds += seconds
 
     # ------------------------------------------------------------ writer thread
+    def _fail(self, message: str) -> None:
+        """Stop recording for good after an I/O error (the first one is the reason)."""
+        if self.failed is None:
+            self.failed = message
+            log.info("recording stopped: %s", message)  # the session reports it in one line
+        self.errors.append(message)
+        if self._current is not None:
+            self._current.abort()
+            self._current = None
+
     def _finish(self, writer: EpisodeWriter, meta: dict[str, Any]) -> None:
+        """Close ``writer``; a file only counts as finished when its close succeeded."""
         try:
-            self.finished.append(writer.close(meta))
-        except Exception as e:
-            self.errors.append(f"{writer.path}: could not be finished ({type(e).__name__}: {e}); left as .active")
-            log.exception("closing %s failed", writer.path)
-            writer.abort()
+            path = writer.close(meta)
+        except RecordingFailed as e:
+            cause = e.__cause__
+            if isinstance(cause, OSError) or cause is None:
+                self._fail(str(e))
+            else:
+                self.errors.append(str(e))
+                self._log_once("close", type(cause).__name__, str(e))
+            return
+        self.finished.append(path)
 
     def _tick_closing(self) -> None:
-        keep = []
-        for writer, meta, left in self._closing:
-            if left <= 1:
-                self._finish(writer, meta)
-            else:
-                keep.append((writer, meta, left - 1))
-        self._closing = keep
+        due = [(w, m) for w, m, left in self._closing if left <= 1]
+        self._closing = [(w, m, left - 1) for w, m, left in self._closing if left > 1]
+        for writer, meta in due:
+            self._finish(writer, meta)
 
     def _route_keypoints(self, msg: dict[str, Any]) -> None:
         fn = msg.get("frame_number", -1)
@@ -482,51 +605,73 @@ class Recorder:
                 return
         self.keypoints_unmatched += 1
 
+    def _log_once(self, op: str, kind: str, message: str) -> None:
+        """Log a failure once per (operation, exception type): a bad input repeated every frame is no log flood."""
+        if (op, kind) not in self._logged:
+            self._logged.add((op, kind))
+            log.error("recorder: %s (further %s errors of this kind are counted, not logged)", message, op)
+
+    def _stop_all(self) -> None:
+        closing, self._closing = self._closing, []
+        for writer, meta, _ in closing:
+            self._finish(writer, meta)
+        if self._current is not None:
+            current, self._current = self._current, None
+            self._finish(current, {**self._current_meta, "complete": False})
+
     def _run(self) -> None:
         import time
 
         while True:
             item = self._q.get()
             op = item[0]
+            if op == "stop":
+                self._stop_all()
+                return
+            if self.failed is not None:
+                self.dropped_after_failure += 1
+                continue
             c0 = time.thread_time()
             try:
-                if op == "open":
-                    if self._current is not None:  # defensive: never lose the previous one
-                        self._finish(self._current, {**self._current_meta, "complete": False})
-                    self._current = EpisodeWriter(item[1], self.camera_id, self.compression, self.color, self.depth,
-                                                  self._executor)
-                    self._current_meta = dict(item[2])
-                elif op == "frame":
-                    if self._current is not None:
-                        self._current.write_frame(item[1], item[2])
-                        self.frames_written += 1
-                    self._tick_closing()
-                elif op == "arm":
-                    if self._current is not None:
-                        self._current.write_arm_state(item[1], item[2])
-                elif op == "kp":
-                    self._route_keypoints(item[1])
-                elif op == "close":
-                    if self._current is not None:
-                        meta = {**self._current_meta, **item[1]}
-                        if self.close_grace > 0:
-                            self._closing.append((self._current, meta, self.close_grace))
-                        else:
-                            self._finish(self._current, meta)
-                        self._current = None
-                elif op == "stop":
-                    for writer, meta, _ in self._closing:
-                        self._finish(writer, meta)
-                    self._closing = []
-                    if self._current is not None:
-                        self._finish(self._current, {**self._current_meta, "complete": False})
-                        self._current = None
-                    return
+                self._handle(op, item)
+            except OSError as e:
+                where = self._current.active_path.name if self._current is not None else str(item[1])
+                self._fail(f"{where}: {op}: {type(e).__name__}: {e}")
             except Exception as e:  # keep the thread alive; the session reads .errors
-                self.errors.append(f"recorder: {op}: {type(e).__name__}: {e}")
-                log.exception("recorder op %s failed", op)
+                if len(self.errors) < 100:
+                    self.errors.append(f"recorder: {op}: {type(e).__name__}: {e}")
+                self._log_once(op, type(e).__name__, f"{op}: {type(e).__name__}: {e}")
             finally:
                 self._add_cpu(time.thread_time() - c0)
+
+    def _handle(self, op: str, item: tuple[Any, ...]) -> None:
+        if op == "open":
+            if self._current is not None:  # defensive: never lose the previous one
+                current, self._current = self._current, None
+                self._finish(current, {**self._current_meta, "complete": False})
+            self._current_meta = dict(item[2])
+            self._current = EpisodeWriter(item[1], self.camera_id, self.compression, self.color, self.depth,
+                                          self._executor, metadata=self._current_meta)
+        elif op == "frame":
+            if self._current is not None:
+                self._current.write_frame(item[1], item[2])
+                self.frames_written += 1
+                if len(item) > 3 and item[3] is not None:
+                    self._current.write_frame_state(item[3], item[1].device_stamp)
+            self._tick_closing()
+        elif op == "arm":
+            if self._current is not None:
+                self._current.write_arm_state(item[1], item[2])
+        elif op == "kp":
+            self._route_keypoints(item[1])
+        elif op == "close":
+            if self._current is not None:
+                current, self._current = self._current, None
+                meta = {**self._current_meta, **item[1]}
+                if self.close_grace > 0:
+                    self._closing.append((current, meta, self.close_grace))
+                else:
+                    self._finish(current, meta)
 
 
 class _CpuTimedExecutor(Executor):

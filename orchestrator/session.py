@@ -22,6 +22,7 @@ from orchestrator import __version__
 from orchestrator.bus import Bus
 from orchestrator.capture import EpisodeStream, RunCapture, RunContext
 from orchestrator.config import Config
+from orchestrator.fsutil import SpaceReserve
 from orchestrator.health import SessionMonitor
 from orchestrator.journal import Journal, RunKey, now_iso, record_key, run_key
 from orchestrator.live import KeypointGate
@@ -53,6 +54,7 @@ class Session:
         on_station: Callable[[Station], None] | None = None,
         journal: Journal | None = None,
         with_worker: bool = False,
+        finishing: threading.Event | None = None,
     ) -> None:
         self.config = config
         self.out_dir = Path(out_dir)
@@ -80,6 +82,8 @@ class Session:
         self.gate: KeypointGate | None = None
         self.supervisor: WorkerSupervisor | None = None
         self._runs_done_here = 0
+        self._reserve: SpaceReserve | None = None
+        self.finishing = finishing or threading.Event()  # set once the last files and the summary are written
 
     # ------------------------------------------------------------------ public
     def run(self, max_seconds: float | None = None, loop: bool = False) -> SessionSummary:
@@ -95,6 +99,7 @@ class Session:
         if journal is None or journal.closed:
             journal = self._journal = Journal.open(self.out_dir, self.config)
         try:
+            self._reserve = SpaceReserve(self.out_dir)
             monitor = self._start_monitor(max_seconds)
             if any(self.out_dir.glob("*.mcap.active")):
                 monitor.set_state("recovering", "unfinished episodes of an earlier session")
@@ -109,11 +114,20 @@ class Session:
                 self.out_dir, self._recorder, self.bus, cam.id, self.summary,
                 min_free_gb=out.min_free_gb, stop_event=self.stop_event,
                 before_open=lambda: self._flush_pending(final=False),
+                disk_check_seconds=self.config.output.disk_check_seconds,
+                sync=self.config.sync,
             )
             self._stream.monitor = monitor
             self._start_tracking(cam.fps)
             items = build_plan(self.config.plan)
-            self._run_plan(items, journal, loop)
+            try:
+                self._run_plan(items, journal, loop)
+            except OSError as e:  # the journal could not be written (a full disk): stop, say where
+                msg = f"{e.filename or self.out_dir}: {e.strerror or e}"
+                self.summary.errors.append(f"session stopped: {msg}")
+                self.summary.stopped_early = f"I/O error: {msg}"
+                self.progress.message(f"error: session stopped: {msg}")
+                self.stop_event.set()
         finally:
             self._finish(journal, t_wall)
         return self.summary
@@ -212,19 +226,27 @@ class Session:
                                  "recording without live keypoints until it is")
 
     def _finish(self, journal: Journal, t_wall: float) -> None:
-        """Finish the episodes, journal the runs whose files are now final, fill and write the summary."""
+        """Finish the episodes, journal the runs whose files are now final, fill and write the summary.
+
+        The summary is written whatever happens on the way (a second signal, a full disk): the space
+        reserve is released first, and a summary that cannot be written is reported in one line.
+        """
+        self.finishing.set()
         monitor = self.monitor
         try:
             if monitor is not None and self.stop_event.is_set():
                 monitor.set_state("stopping", self.summary.stopped_early or "stop requested")
             if self._recorder is not None:
                 self._recorder.stop()
-                self._flush_pending(final=True)
+                self._with_space(lambda: self._flush_pending(final=True))
+        finally:
+            journal.close()
+            if self._reserve is not None:
+                self._reserve.release()
+            if self._recorder is not None:
                 self.summary.episodes = sorted(self._recorder.finished)
                 self.summary.keypoints_recorded = self._recorder.keypoints_written
                 self.summary.errors.extend(self._recorder.errors)
-        finally:
-            journal.close()
             if self.supervisor is not None:
                 self.supervisor.stop()
                 self.summary.worker_restarts = self.supervisor.restarts
@@ -234,12 +256,16 @@ class Session:
                 self.summary.keypoints_rejected = dict(self.gate.rejected.counts)
             if monitor is not None:
                 monitor.close("failed" if self.summary.runs_failed or self.summary.errors else "done")
-        planned = {run_key(it) for it in build_plan(self.config.plan)}
-        self.summary.plan_runs_done = len(self._done_keys & planned)
-        self.summary.plan_pass = self._pass
-        self.summary.wall_seconds = time.monotonic() - t_wall
-        self.progress.done()
-        self.summary.write(self.out_dir / "summary.json")
+            planned = {run_key(it) for it in build_plan(self.config.plan)}
+            self.summary.plan_runs_done = len(self._done_keys & planned)
+            self.summary.plan_pass = self._pass
+            self.summary.wall_seconds = time.monotonic() - t_wall
+            self.progress.done()
+            try:
+                self.summary.write(self.out_dir / "summary.json")
+            except OSError as e:
+                self.summary.errors.append(f"{self.out_dir / 'summary.json'}: could not be written: {e}")
+                self.progress.message(f"error: {self.out_dir / 'summary.json'}: could not be written: {e}")
 
     # ------------------------------------------------------------------ internals
     def _should_stop(self) -> bool:
@@ -290,18 +316,29 @@ class Session:
             station.close()
 
     def _run_journaled(self, item: RunItem, station: Station) -> None:
-        """Run an item between a ``start`` and a ``run`` journal record (none when a stop cuts it short)."""
+        """Run an item between a ``start`` and a ``run`` journal record (none when a stop cuts it short).
+
+        Low disk space ends the attempt (journaled failed, with the reason); with ``output.on_low_disk:
+        pause`` the item runs again once space returns, else the session stops. A recorder that failed
+        on an I/O error stops the session: the run is journaled failed with the reason.
+        """
+        while self._run_attempt(item, station):
+            pass
+
+    def _run_attempt(self, item: RunItem, station: Station) -> bool:
+        """One attempt at an item; True when it is to be attempted again (space came back after a pause)."""
         key = run_key(item)
         self._flush_pending(final=False)
         monitor = self.monitor
         if monitor is not None and monitor.pause_requested():  # a pause asked for at the end of the last run
             monitor.hold()
             if self._should_stop():
-                return
+                return False
         attempt = self._attempts[key] = self._attempts.get(key, 0) + 1
         assert self._journal is not None and self._stream is not None
-        self._journal.run_started(key, plan_pass=self._pass, attempt=attempt, session=self._session_index,
-                                  first_episode=self._stream.next_index)
+        journal, stream = self._journal, self._stream
+        self._with_space(lambda: journal.run_started(key, plan_pass=self._pass, attempt=attempt,
+                                                     session=self._session_index, first_episode=stream.next_index))
         ctx = RunContext(
             config=self.config, clock=self.clock, stream=self._stream, summary=self.summary, progress=self.progress,
             stop_event=self.stop_event, should_stop=self._should_stop, max_seconds=self._max_seconds,
@@ -329,6 +366,24 @@ class Session:
                 monitor.set_state("idle", f"{item.label}: {outcome}")
         if outcome == "done":
             self._runs_done_here += 1
+        if outcome == "low_disk":
+            assert reason is not None
+            self._journal_run(item, "failed", f"low disk space: {reason}", episodes, wall)
+            self.progress.message(f"warning: {reason}")
+            if self.config.output.on_low_disk == "pause" and self._wait_for_disk():
+                return True
+            self.summary.stopped_early = self.summary.stopped_early or reason
+            self.stop_event.set()
+            return False
+        if outcome == "failed" and self._recorder is not None and self._recorder.failed is not None:
+            self._with_space(lambda: self._journal_run(item, outcome, reason, episodes, wall))
+            self.summary.stopped_early = f"recording failed: {self._recorder.failed}"
+            self.progress.message(
+                f"error: recording stopped: {self._recorder.failed}; unfinished files stay .active "
+                f"(run `trackdeform recover {self.out_dir}` once there is space)"
+            )
+            self.stop_event.set()
+            return False
         if outcome == "stopped":
             self.summary.runs_cut_short.append(
                 f"{item.label}: stopped after {len(episodes)} episode(s); runs again from its start on resume"
@@ -338,6 +393,33 @@ class Session:
             self._pending.append((self._run_record(item, "done", None, episodes, wall), episodes))
         else:
             self._journal_run(item, outcome, reason, episodes, wall)
+        return False
+
+    def _with_space(self, write: Callable[[], None]) -> None:
+        """Run a journal write; on an OSError (a full disk) release the space reserve and try once more."""
+        try:
+            write()
+        except OSError:
+            if self._reserve is None or not self._reserve.held:
+                raise
+            self._reserve.release()
+            write()
+
+    def _wait_for_disk(self) -> bool:
+        """Pause (arms stopped, nothing recorded) until free space is back above ``min_free_gb``.
+
+        True when it is; False when a stop came first.
+        """
+        assert self._stream is not None
+        poll = self.config.output.low_disk_poll_seconds
+        self.summary.low_disk_pauses += 1
+        self.progress.message(f"paused: waiting for free space in {self.out_dir} (checked every {poll:g} s)")
+        while not self.stop_event.is_set():
+            if self._stream.disk_low() is None:
+                self.progress.message("free space is back: resuming")
+                return True
+            self.stop_event.wait(poll)
+        return False
 
     def _run_record(
         self, item: RunItem, outcome: str, reason: str | None, episodes: list[Path], wall: float
@@ -351,8 +433,10 @@ class Session:
     def _journal_run(self, item: RunItem, outcome: str, reason: str | None, episodes: list[Path],
                      wall: float) -> None:
         """Journal a failed or skipped item now (it is retried on resume whatever its files' state)."""
-        assert self._journal is not None
-        self._journal.run_finished(self._run_record(item, outcome, reason, episodes, wall))
+        journal = self._journal
+        assert journal is not None
+        record = self._run_record(item, outcome, reason, episodes, wall)
+        self._with_space(lambda: journal.run_finished(record))
 
     def _flush_pending(self, final: bool) -> None:
         """Journal the "done" runs whose episode files are all final; with ``final``, the rest as failed."""

@@ -34,6 +34,7 @@ class SessionSummary:
     plan_pass: int = 0
     journal: str | None = None
     faults_recovered: int = 0
+    low_disk_pauses: int = 0  # times the session paused for free space (output.on_low_disk: pause)
     start_skew_s: float = 0.0  # largest delay between the two arms' motion starts over the runs, s
     errors: list[str] = field(default_factory=list)
     recorded_seconds: float = 0.0
@@ -83,6 +84,8 @@ class SessionSummary:
             lines.append(f"incident         : {inc}")
         if self.faults_recovered:
             lines.append(f"faults recovered : {self.faults_recovered}")
+        if self.low_disk_pauses:
+            lines.append(f"low-disk pauses  : {self.low_disk_pauses}")
         if self.stopped_early:
             lines.append(f"stopped early    : {self.stopped_early}")
         for e in self.errors + self.runs_failed:
@@ -90,10 +93,17 @@ class SessionSummary:
         return "\n".join(lines)
 
     def write(self, path: Path) -> None:
-        """Write the summary as JSON to ``path`` atomically (a temporary file, fsynced, renamed over it)."""
+        """Write the summary as JSON to ``path`` atomically (a temporary file, fsynced, renamed over it).
+
+        On an error (a full disk) the temporary file is removed and an earlier ``path`` stays as it was.
+        """
         tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "w") as f:
-            f.write(json.dumps(self.to_dict(), indent=2))
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        try:
+            with open(tmp, "w") as f:
+                f.write(json.dumps(self.to_dict(), indent=2))
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise

@@ -230,7 +230,7 @@ class Worker:
         self._last_frame = frame.frame_number
         with self._lock:
             run = self._announced
-            state = self._state
+            state = msg.joint_state or self._state  # the arms at the frame's capture time, when paired
         if run is None:
             self.stats.no_run += 1
             return True

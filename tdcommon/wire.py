@@ -10,7 +10,10 @@ Keys (``<prefix>/<station>/...``):
   ``color_encoding`` ("rgb8", row-major H×W×3), ``depth_encoding`` ("16UC1", row-major H×W,
   little-endian), ``depth_scale`` (m per unit), ``K`` (9 floats, row-major), ``T_world_cam``
   (16 floats, row-major, metres), ``camera_id``, ``run`` (object, category, program, speed,
-  run_index of the program run being recorded) and, in mock mode, ``ground_truth``.
+  run_index of the program run being recorded), optionally ``joint_state`` (both arms' joints at the
+  frame's capture time: ``{"stamp", "left": {"q", "gripper_width", "grasped"}, "right": {...}, "u",
+  "pairing_error_s"}``, see orchestrator.timesync; use it rather than the latest ``arms/state``)
+  and, in mock mode, ``ground_truth``.
 - ``arms/state``: JSON ``{"stamp": s, "left": {"q": [7], "dq": [7], "gripper_width": m,
   "grasped": bool}, "right": {...}, "u": [12]}`` — u is the paper's arm input (per arm: TCP
   position m + rotation vector rad, world frame; left then right).
@@ -84,6 +87,7 @@ class FrameMessage:
     T_world_cam: np.ndarray  # (4, 4)
     camera_id: str
     run: dict[str, Any]  # what is being recorded: object, category, program, speed, run_index
+    joint_state: dict[str, Any] | None = None  # the arms at the frame's capture time, when the sender paired them
 
 
 def points_to_json(points: Any, decimals: int = 6) -> list[dict[str, float]]:
@@ -139,8 +143,10 @@ def ground_truth_from_json(d: dict[str, Any]) -> GroundTruth:
     )
 
 
-def encode_frame(frame: RGBDFrame, T_world_cam: np.ndarray, camera_id: str, run: dict[str, Any] | None = None) -> bytes:
-    """Serialise a frame for the bus (see module docstring for the layout); ``run`` says what is recorded."""
+def encode_frame(frame: RGBDFrame, T_world_cam: np.ndarray, camera_id: str, run: dict[str, Any] | None = None,
+                 joint_state: dict[str, Any] | None = None) -> bytes:
+    """Serialise a frame for the bus (see module docstring for the layout); ``run`` says what is recorded,
+    ``joint_state`` the arms at the frame's capture time."""
     color = np.ascontiguousarray(frame.color, dtype=np.uint8)
     depth = np.ascontiguousarray(frame.depth, dtype="<u2")
     k = frame.intrinsics
@@ -160,6 +166,8 @@ def encode_frame(frame: RGBDFrame, T_world_cam: np.ndarray, camera_id: str, run:
         "depth_size": depth.nbytes,
         "run": run or {},
     }
+    if joint_state is not None:
+        header["joint_state"] = joint_state
     if frame.ground_truth is not None:
         header["ground_truth"] = ground_truth_to_json(frame.ground_truth)
     hb = json.dumps(header, separators=(",", ":")).encode()
@@ -186,7 +194,9 @@ def decode_frame(payload: bytes | memoryview) -> FrameMessage:
         color, depth.astype(np.uint16, copy=False), float(h["depth_scale"]), intr,
         float(h["device_stamp"]), float(h["host_stamp"]), int(h["frame_number"]), gt,
     )
-    return FrameMessage(frame, np.asarray(h["T_world_cam"]).reshape(4, 4), str(h["camera_id"]), h.get("run", {}))
+    js = h.get("joint_state")
+    return FrameMessage(frame, np.asarray(h["T_world_cam"]).reshape(4, 4), str(h["camera_id"]), h.get("run", {}),
+                        js if isinstance(js, dict) else None)
 
 
 def encode_json(obj: dict[str, Any]) -> bytes:

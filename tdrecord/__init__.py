@@ -6,7 +6,7 @@ reader API is re-exported here; :mod:`tdrecord.episodes`, :mod:`tdrecord.paper` 
 """
 
 from tdrecord.episodes import ACTIVE_SUFFIX, RecordedRun, read_episode_metadata, read_episodes, recorded_runs, run_key
-from tdrecord.io import Calibration, read_calibration, read_sequence
+from tdrecord.io import Calibration, read_calibration, read_sequence, verify_sequence_files
 from tdrecord.paper import (
     ReferenceKeypoints,
     read_paper_layout,
@@ -19,5 +19,6 @@ from tdrecord.sequence import DatasetError, FrameSource, Sequence, nearest_index
 __all__ = [
     "ACTIVE_SUFFIX", "Calibration", "DatasetError", "FrameSource", "RecordedRun", "ReferenceKeypoints", "Sequence",
     "nearest_index", "read_calibration", "read_episode_metadata", "read_episodes", "read_paper_layout",
-    "read_reference_npz", "read_sequence", "recorded_runs", "run_key", "write_paper_layout", "write_reference_npz",
+    "read_reference_npz", "read_sequence", "recorded_runs", "run_key", "verify_sequence_files", "write_paper_layout",
+    "write_reference_npz",
 ]

@@ -64,6 +64,16 @@ SCHEMAS: dict[str, dict[str, Any]] = {
          "u": _array(_NUM, "arm input: per arm TCP position (m) and rotation vector (rad), world, left then right")},
         ["stamp", "u"],
     ),
+    "trackdeform.ArmStateAtFrame": _object(
+        "trackdeform.ArmStateAtFrame",
+        {"frame_number": _INT, "stamp": {"type": "number", "description": "s, the frame's capture time, host clock"},
+         "left": _ARM, "right": _ARM,
+         "u": _array(_NUM, "arm input from the interpolated joints, left then right"),
+         "pairing_error_s": {"type": "number", "description": "distance to the nearest joint sample, s"},
+         "device_minus_host_s": {"type": "number", "description": "estimated camera clock minus host clock, s"}},
+        ["frame_number", "stamp"],
+        "both arms' joints interpolated at the frame's capture time (camera-arm time sync)",
+    ),
     "trackdeform.Keypoints": _object(
         "trackdeform.Keypoints",
         {"schema": _STR, "frame_number": _INT, "stamp": {"type": "number", "description": "s, the frame's stamp"},

@@ -29,15 +29,36 @@ log = logging.getLogger(__name__)
 ACTIVE_SUFFIX = ".mcap.active"
 
 
+OPEN_METADATA = "episode_open"  # written when the episode opens (kept by recovery)
+CLOSE_METADATA = "episode"  # written when it closes, or by recovery (complete: false)
+
+
+def merge_metadata(records: Iterable[Any]) -> dict[str, Any] | None:
+    """The episode metadata of an MCAP file's metadata records: ``episode_open`` updated by ``episode``,
+    values decoded from JSON; None when the file has neither."""
+    opened: dict[str, Any] | None = None
+    closed: dict[str, Any] | None = None
+    for m in records:
+        if m.name in (OPEN_METADATA, CLOSE_METADATA):
+            values = {k: json.loads(v) for k, v in m.metadata.items()}
+            if m.name == OPEN_METADATA:
+                opened = {**(opened or {}), **values}
+            else:
+                closed = {**(closed or {}), **values}
+    if opened is None and closed is None:
+        return None
+    return {**(opened or {}), **(closed or {})}
+
+
 def read_episode_metadata(path: Path) -> dict[str, Any]:
-    """The ``episode`` metadata record of a finished file, values decoded from JSON."""
+    """The episode metadata of a finished file (``episode_open`` merged with ``episode``), values decoded."""
     from mcap.reader import make_reader
 
     with open(path, "rb") as f:
-        for m in make_reader(f).iter_metadata():
-            if m.name == "episode":
-                return {k: json.loads(v) for k, v in m.metadata.items()}
-    raise ValueError(f"{path}: no 'episode' metadata record")
+        meta = merge_metadata(make_reader(f).iter_metadata())
+    if meta is None:
+        raise ValueError(f"{path}: no 'episode' metadata record")
+    return meta
 
 
 @dataclass
@@ -63,6 +84,7 @@ class _EpisodeIndex:
     gripper_width: dict[str, np.ndarray]  # arm -> (S,) m
     ground_truth: list[GroundTruth | None]
     incomplete_frames: int
+    paired: list[dict[str, Any] | None]  # per frame: the arms at its capture time (/arms/state_at_frame), if any
     keyframes: np.ndarray | None = None  # (T,) bool: the colour image decodes without earlier ones
 
 
@@ -107,21 +129,19 @@ def _index_episode(path: Path, camera_id: str | None) -> _EpisodeIndex:
             for t in (f"{cam}/color", f"{cam}/depth"):
                 if t not in topics:
                     raise DatasetError(f"{path}: no '{t}' channel (channels: {sorted(topics)})")
-            metadata: dict[str, Any] = {}
-            for m in reader.iter_metadata():
-                if m.name == "episode":
-                    metadata = {k: json.loads(v) for k, v in m.metadata.items()}
+            metadata: dict[str, Any] = merge_metadata(reader.iter_metadata()) or {}
             color_t: dict[int, int] = {}
             depth_t: set[int] = set()
             info: dict[int, dict[str, Any]] = {}
             states: list[dict[str, Any]] = []
             gts: dict[int, dict[str, Any]] = {}
+            at_frame: dict[int, dict[str, Any]] = {}
             calib_msg: Any = None
             tf_cam: np.ndarray | None = None
             factory = DecoderFactory()
             decoders: dict[int, Callable[[bytes], Any]] = {}
             wanted = [f"{cam}/color", f"{cam}/depth", f"{cam}/frame_info", f"{cam}/calibration", "/arms/state",
-                      "/ground_truth/keypoints", "/tf"]
+                      "/arms/state_at_frame", "/ground_truth/keypoints", "/tf"]
             for schema, channel, msg in reader.iter_messages(topics=[t for t in wanted if t in topics]):
                 topic = channel.topic
                 if topic == f"{cam}/color":
@@ -132,6 +152,9 @@ def _index_episode(path: Path, camera_id: str | None) -> _EpisodeIndex:
                     info[msg.log_time] = json.loads(msg.data)
                 elif topic == "/arms/state":
                     states.append(json.loads(msg.data))
+                elif topic == "/arms/state_at_frame":
+                    d = json.loads(msg.data)
+                    at_frame[int(d.get("frame_number", -1))] = d
                 elif topic == "/ground_truth/keypoints":
                     d = json.loads(msg.data)
                     gts[int(d.get("frame_number", -1))] = d
@@ -207,6 +230,7 @@ def _index_episode(path: Path, camera_id: str | None) -> _EpisodeIndex:
         device_stamps=device, host_stamps=host, K=K, width=width, height=height, T_world_cam=T_world_cam,
         T_world_base=T_world_base, metadata=metadata, state_stamps=state_stamps, q=q, u=u, grasped=grasped,
         gripper_width=gripper_width, ground_truth=gt_list, incomplete_frames=incomplete, keyframes=keyframes,
+        paired=[at_frame.get(int(n)) for n in frame_numbers],
     )
 
 
@@ -288,9 +312,10 @@ def episode_files(path: Path) -> tuple[list[Path], list[Path]]:
 def read_episodes(path: str | Path, camera_id: str | None = None) -> Sequence:
     """An episode ``.mcap`` or a folder of them (sorted by name) as one Sequence, frames decoded lazily.
 
-    Joint states, grasp flags and TCP poses (from ``u``, world frame) are those of the ``/arms/state``
-    sample nearest each frame's host stamp (both on the host clock), within the same file; files without
-    arm states give NaN rows (None when no file has any). Calibration comes from the ``episode``
+    Joint states, grasp flags and TCP poses (from ``u``, world frame) of a frame are those recorded at its
+    capture time (``/arms/state_at_frame``: interpolated by the recorder's camera–arm time sync), else
+    those of the ``/arms/state`` sample nearest its host stamp (both on the host clock), within the same
+    file; files without arm states give NaN rows (None when no file has any). Calibration comes from the ``episode``
     metadata (else the calibration channel and ``/tf``); every file must agree on it. Unfinished
     ``.active`` files are an error when named, skipped with a warning inside a folder.
     """
@@ -320,29 +345,42 @@ def read_episodes(path: str | Path, camera_id: str | None = None) -> Sequence:
             if start < offsets[k + 1]:
                 yield from _iter_episode_frames(ep, max(0, start - int(offsets[k])))
 
-    def per_frame(ep: _EpisodeIndex, values: np.ndarray, fill: float | bool) -> np.ndarray:
+    def per_frame(ep: _EpisodeIndex, values: np.ndarray, fill: float | bool,
+                  paired: Callable[[dict[str, Any]], Any] | None = None) -> np.ndarray:
         T = len(ep.times)
         ok = np.isfinite(ep.state_stamps)
         if not ok.any():
-            return np.full((T, *values.shape[1:]), fill, dtype=values.dtype)
-        idx = nearest_index(ep.state_stamps[ok], ep.host_stamps)
-        return values[ok][idx]
+            rows = np.full((T, *values.shape[1:]), fill, dtype=values.dtype)
+        else:
+            rows = values[ok][nearest_index(ep.state_stamps[ok], ep.host_stamps)]
+        if paired is not None:
+            at = [i for i, p in enumerate(ep.paired) if p is not None]
+            if at:
+                rows[at] = np.asarray([paired(ep.paired[i]) for i in at], dtype=values.dtype).reshape(
+                    len(at), *values.shape[1:]
+                )
+        return rows
 
-    has_states = any(np.isfinite(ep.state_stamps).any() for ep in episodes)
+    has_states = any(np.isfinite(ep.state_stamps).any() or any(ep.paired) for ep in episodes)
     out: dict[str, Any] = {}
-    state_offset = 0.0  # worst |frame host stamp - aligned state stamp|, s
+    state_offset = 0.0  # worst |frame host stamp - aligned state stamp|, s (frames aligned by host stamp)
     if has_states:
         for ep in episodes:
             if np.isfinite(ep.state_stamps).any():
                 aligned = per_frame(ep, ep.state_stamps[:, None], np.nan)[:, 0]
-                state_offset = max(state_offset, float(np.max(np.abs(aligned - ep.host_stamps), initial=0.0)))
+                nearest = np.array([p is None for p in ep.paired], dtype=bool)
+                state_offset = max(state_offset, float(np.max(np.abs(aligned - ep.host_stamps)[nearest], initial=0.0)))
         for arm in ("left", "right"):
-            out[f"q_{arm}"] = np.concatenate([per_frame(ep, ep.q[arm], np.nan) for ep in episodes])
-            out[f"grasped_{arm}"] = np.concatenate([per_frame(ep, ep.grasped[arm], False) for ep in episodes])
-            out[f"gripper_width_{arm}"] = np.concatenate(
-                [per_frame(ep, ep.gripper_width[arm], np.nan) for ep in episodes]
+            out[f"q_{arm}"] = np.concatenate([per_frame(ep, ep.q[arm], np.nan, lambda p, a=arm: p[a]["q"])
+                                              for ep in episodes])
+            out[f"grasped_{arm}"] = np.concatenate(
+                [per_frame(ep, ep.grasped[arm], False, lambda p, a=arm: p[a]["grasped"]) for ep in episodes]
             )
-        u = np.concatenate([per_frame(ep, ep.u, np.nan) for ep in episodes])
+            out[f"gripper_width_{arm}"] = np.concatenate(
+                [per_frame(ep, ep.gripper_width[arm], np.nan, lambda p, a=arm: p[a]["gripper_width"])
+                 for ep in episodes]
+            )
+        u = np.concatenate([per_frame(ep, ep.u, np.nan, lambda p: p["u"]) for ep in episodes])
         out["tcp_left"], out["tcp_right"] = input_to_matrix(u[:, :6]), input_to_matrix(u[:, 6:])
     gt = [g for ep in episodes for g in ep.ground_truth]
     width, height = first.width, first.height
@@ -357,6 +395,7 @@ def read_episodes(path: str | Path, camera_id: str | None = None) -> Sequence:
         skipped_unfinished=[str(a) for a in active],
         incomplete_frames=sum(ep.incomplete_frames for ep in episodes),
         max_state_offset_s=state_offset if has_states else None,
+        frames_paired_at_capture=sum(sum(p is not None for p in ep.paired) for ep in episodes),
         world_frame="the station's world frame (see calibration)",
     )
     return Sequence(

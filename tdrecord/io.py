@@ -8,7 +8,14 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from tdrecord.episodes import ACTIVE_SUFFIX, episode_files, read_episode_metadata, read_episodes, unfinished_message
-from tdrecord.paper import RGBD_FILE, npz_member_header, paper_calibration, read_paper_layout
+from tdrecord.paper import (
+    RGBD_FILE,
+    npz_member_header,
+    paper_calibration,
+    paper_layout_files,
+    read_paper_layout,
+    verify_npz,
+)
 from tdrecord.sequence import DatasetError, Sequence
 
 
@@ -72,3 +79,16 @@ def read_calibration(path: str | Path) -> Calibration:
     return Calibration(seq.K, seq.width, seq.height, seq.T_world_cam, seq.T_world_base)
 
 
+
+
+def verify_sequence_files(path: str | Path) -> None:
+    """Check a paper-layout dataset's .npz files completely (zip CRCs) before a long job reads them.
+
+    Raises DatasetError naming the first corrupt file; episode files need no check here (MCAP chunks
+    carry their own CRCs, checked as they are read).
+    """
+    path = Path(path)
+    folder = path.parent if path.name == RGBD_FILE else path
+    if folder.is_dir() and (folder / RGBD_FILE).is_file():
+        for f in paper_layout_files(folder):
+            verify_npz(f)

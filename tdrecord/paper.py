@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import zipfile
+import zlib
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import IO, Any, Literal, NamedTuple
@@ -42,6 +43,28 @@ def _read_npy_header(fp: IO[bytes], where: str) -> tuple[tuple[int, ...], bool, 
         return fmt.read_array_header_2_0(fp)
     except ValueError as e:
         raise DatasetError(f"{where}: not a .npy array ({e})") from e
+
+
+def verify_npz(path: Path) -> None:
+    """Check an .npz completely before use: a zip archive whose every member passes its CRC check.
+
+    Raises DatasetError naming the file (and the first bad member); reads the whole file once.
+    """
+    try:
+        with zipfile.ZipFile(path) as zf:
+            bad = zf.testzip()
+    except zipfile.BadZipFile as e:
+        raise DatasetError(f"{path}: not a valid .npz (zip) file ({e})") from None
+    except (OSError, EOFError, zlib.error) as e:
+        raise DatasetError(f"{path}: corrupt .npz ({type(e).__name__}: {e})") from None
+    if bad is not None:
+        raise DatasetError(f"{path}: corrupt .npz: member {bad!r} fails its CRC check")
+
+
+def paper_layout_files(folder: Path) -> list[Path]:
+    """The .npz files of a paper-layout folder that exist (rgbd, poses, calibration, joint states)."""
+    names = [RGBD_FILE, *POSE_FILES.values(), CALIBRATION_FILE, JOINT_FILE]
+    return [folder / n for n in names if (folder / n).is_file()]
 
 
 def npz_member_header(path: Path, key: str) -> tuple[tuple[int, ...], np.dtype]:

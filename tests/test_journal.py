@@ -274,7 +274,7 @@ def _write_config(tmp_path: Path, cfg: Config, name: str = "station.yaml") -> Pa
 
 
 def _run_cli(argv: list[str], monkeypatch: pytest.MonkeyPatch) -> int:
-    monkeypatch.setattr(cli, "_install_signal_handlers", lambda stop: None)  # keep pytest's Ctrl-C
+    monkeypatch.setattr(cli, "_install_signal_handlers", lambda *a: None)  # keep pytest's Ctrl-C
     return cli.main(argv)
 
 

@@ -40,6 +40,10 @@ class ProgramError(ValueError):
     """A program file that cannot be used; the message names the file, waypoint and joint."""
 
 
+class ProgramUnreadable(ProgramError):
+    """A program file that cannot be read at all (missing, not UTF-8, not YAML/JSON); the message names it."""
+
+
 class GripperCommand(BaseModel):
     """What a gripper does at a waypoint: ``open`` or ``closed``, optional width (m) and force (N)."""
 
@@ -171,13 +175,20 @@ def load_program(path: str | Path) -> Program:
     """Load and validate a program file (.yaml/.yml/.json); errors name the file, waypoint and joint."""
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except OSError as e:
-        raise ProgramError(f"{path}: cannot read: {e.strerror}") from None
+        raise ProgramUnreadable(f"{path}: cannot read: {e.strerror}") from None
+    except UnicodeDecodeError as e:
+        raise ProgramUnreadable(
+            f"{path}: not UTF-8 text (byte 0x{e.object[e.start]:02x} at offset {e.start}); "
+            "a program is a YAML or JSON file"
+        ) from None
     try:
         data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
     except (yaml.YAMLError, json.JSONDecodeError) as e:
-        raise ProgramError(f"{path.name}: not valid {'JSON' if path.suffix == '.json' else 'YAML'}: {e}") from None
+        raise ProgramUnreadable(
+            f"{path.name}: not valid {'JSON' if path.suffix == '.json' else 'YAML'}: {e}"
+        ) from None
     return parse_program(data, path.name)
 
 

@@ -471,6 +471,9 @@ class FakeCamera:
 
     Frame k is captured at clock time k / fps and ``frame_number`` is k: a device counter running
     since the clock's epoch, so it continues across reconnects and station rebuilds on one clock.
+    ``device_stamp`` is the capture time on the camera's own clock (``clock_offset`` and
+    ``clock_drift_ppm`` from the host's); the frame reaches the host ``latency`` (+ up to
+    ``latency_jitter``) after capture, when ``host_stamp`` is taken.
     Faults: :meth:`inject_fault` drops the next ``count`` frames ("drop": a gap in frame_number)
     or makes the next read raise :class:`DeviceError` ("error").
     """
@@ -570,13 +573,21 @@ class FakeCamera:
             renderer.object_color = np.asarray(st.object_config.color, dtype=np.float32)  # after set_object too
             out = renderer.render(st.arm_meshes(t_frame), st.object_mesh(), frame_index=k, with_mask=self.render_mask)
             self.last_mask = out.mask
+            c = self.config
+            if c.latency or c.latency_jitter:  # delivered late: the host stamps it on arrival
+                jitter = c.latency_jitter * float(np.random.default_rng((c.seed, k)).random())
+                self.clock.sleep_until(t_frame + c.latency + jitter)
             return RGBDFrame(
                 color=out.color,
                 depth=out.depth,
                 depth_scale=DEPTH_SCALE,
                 intrinsics=self._intrinsics,
-                device_stamp=t_frame,
+                device_stamp=self.device_time(t_frame),
                 host_stamp=self.clock.now(),
                 frame_number=k,
                 ground_truth=gt,
             )
+
+    def device_time(self, t: float) -> float:
+        """The camera's own clock at host time ``t``, s (``clock_offset`` and ``clock_drift_ppm``)."""
+        return self.config.clock_offset + t * (1.0 + self.config.clock_drift_ppm * 1e-6)
