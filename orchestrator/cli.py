@@ -241,7 +241,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
     not be recovered (the line says why: e.g. too little free space), else 0.
     """
     from orchestrator.journal import FolderLock, JournalError
-    from orchestrator.recorder import recover_active
+    from orchestrator.recovery import recover_active
 
     directory = Path(args.directory)
     if not directory.is_dir():

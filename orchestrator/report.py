@@ -9,6 +9,9 @@ and Chamfer distance against time (the paper's Fig. 5); one 3D keypoint-trajecto
 
 Episodes are streamed: one episode file is read at a time and only per-frame scalars, the run's keypoints
 (for its trajectory figure) and a few thumbnails are kept, so memory does not grow with the session.
+
+One module (~550 lines) on purpose: reading, the figures and the page share the per-run ``RunData`` and
+the order the page is built in; the template holds the page's layout.
 """
 
 from __future__ import annotations

@@ -28,7 +28,8 @@ from orchestrator.journal import Journal, RunKey, now_iso, record_key, run_key
 from orchestrator.live import KeypointGate
 from orchestrator.plan import RunItem, build_plan
 from orchestrator.progress import Progress
-from orchestrator.recorder import Recorder, recover_active
+from orchestrator.recorder import Recorder
+from orchestrator.recovery import recover_active
 from orchestrator.station import Station
 from orchestrator.summary import SessionSummary
 from orchestrator.supervisor import WorkerSupervisor

@@ -11,7 +11,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from orchestrator.config import ColorOutputConfig
-from orchestrator.recorder import EpisodeWriter, recover_active
+from orchestrator.recorder import EpisodeWriter
+from orchestrator.recovery import recover_active
 from tdcommon.transforms import invert_transform, matrix_to_pose7, pose7_to_matrix
 from tdcommon.types import GroundTruth, RGBDFrame
 from tdrecord import (

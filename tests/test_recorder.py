@@ -14,7 +14,8 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
 from orchestrator.config import ColorOutputConfig
-from orchestrator.recorder import EpisodeWriter, Recorder, recover_active
+from orchestrator.recorder import EpisodeWriter, Recorder
+from orchestrator.recovery import recover_active
 from tdrecord import read_episode_metadata
 from tests.conftest import REPO, make_frame
 

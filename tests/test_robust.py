@@ -25,8 +25,10 @@ import pytest
 from drivers.clock import SimClock
 from orchestrator import cli
 from orchestrator import recorder as recorder_mod
+from orchestrator import recovery as recovery_mod
 from orchestrator.journal import JOURNAL_NAME, read_journal
-from orchestrator.recorder import EpisodeWriter, Recorder, recover_active
+from orchestrator.recorder import EpisodeWriter, Recorder
+from orchestrator.recovery import recover_active
 from orchestrator.session import Session
 from tdrecord import read_episode_metadata, read_episodes
 from tests.conftest import REPO, make_frame
@@ -177,7 +179,7 @@ def test_recover_on_a_nearly_full_disk_says_why_and_touches_nothing(
 ) -> None:
     active = _killed_writer(tmp_path)
     size = active.stat().st_size
-    monkeypatch.setattr(recorder_mod, "free_bytes", lambda path: size // 2)
+    monkeypatch.setattr(recovery_mod, "free_bytes", lambda path: size // 2)
     assert cli.main(["recover", str(tmp_path)]) == 1
     out = capsys.readouterr().out
     assert f"{active}: not recovered: {active}: needs about" in out and "MiB free" in out
@@ -194,7 +196,7 @@ def test_recover_that_hits_enospc_leaves_the_active_file_and_no_partial_copy(
     def failing_finish(self: Any) -> None:
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(recorder_mod.Writer, "finish", failing_finish)
+    monkeypatch.setattr(recovery_mod.Writer, "finish", failing_finish)
     [(path, outcome)] = recover_active(tmp_path)
     assert path == active and outcome.startswith("not recovered") and "No space left" in outcome
     assert active.stat().st_size == size
