@@ -105,6 +105,7 @@ class TrackingConfig(StrictModel):
     use_cloud_projection: bool = Field(True, description="ablation: projection onto the cloud")
     live_window: int = Field(3, ge=1, le=31, description="causal moving-average window, frames")
     final_window: int = Field(5, ge=1, le=31, description="symmetric moving-average window, frames (odd)")
+    final: bool = Field(True, description="after each run, track its frames offline and add /keypoints/final")
 
     @field_validator("final_window")
     @classmethod

@@ -21,7 +21,8 @@ from orchestrator import __version__
 from orchestrator.bus import Bus
 from orchestrator.capture import EpisodeStream, RunCapture, RunContext
 from orchestrator.config import Config
-from orchestrator.journal import Journal, RunKey, now_iso, record_key, run_key
+from orchestrator.journal import Journal, RunKey, key_fields, now_iso, record_key, run_key
+from orchestrator.landing import Landing
 from orchestrator.plan import RunItem, build_plan
 from orchestrator.progress import Progress
 from orchestrator.recorder import Recorder, recover_active
@@ -70,6 +71,7 @@ class Session:
         self._attempts: dict[RunKey, int] = {}
         self._pending: list[tuple[dict[str, Any], list[Path]]] = []  # "done" records waiting for their files
         self._done_keys: set[RunKey] = set()
+        self._landing: Landing | None = None  # manifest + final keypoints of the runs (orchestrator.landing)
 
     # ------------------------------------------------------------------ public
     def run(self, max_seconds: float | None = None, loop: bool = False) -> SessionSummary:
@@ -97,6 +99,7 @@ class Session:
             )
             if self.bus is not None:
                 self.bus.subscribe(self.bus.key("keypoints"), callback=self._on_keypoints)
+            self._landing = Landing(self.out_dir, self.config, journal, self.summary, self.progress, __version__)
             items = build_plan(self.config.plan)
             self._run_plan(items, journal, loop)
         finally:
@@ -166,6 +169,8 @@ class Session:
             if self._recorder is not None:
                 self._recorder.stop()
                 self._flush_pending(final=True)
+                if self._landing is not None:
+                    self._landing.finish(list(self._recorder.finished), self.stop_event.is_set())
                 self.summary.episodes = sorted(self._recorder.finished)
                 self.summary.keypoints_recorded = self._recorder.keypoints_written
                 self.summary.errors.extend(self._recorder.errors)
@@ -245,6 +250,8 @@ class Session:
         t0 = time.monotonic()
         outcome, reason = capture.run()
         episodes, wall = list(capture.episodes), time.monotonic() - t0
+        if self._landing is not None:
+            self._landing.run_ended({**key_fields(key), "pass": self._pass, "attempt": attempt}, episodes)
         if outcome == "stopped":
             self.summary.runs_cut_short.append(
                 f"{item.label}: stopped after {len(episodes)} episode(s); runs again from its start on resume"
@@ -272,6 +279,8 @@ class Session:
 
     def _flush_pending(self, final: bool) -> None:
         """Journal the "done" runs whose episode files are all final; with ``final``, the rest as failed."""
+        if self._landing is not None and self._recorder is not None:
+            self._landing.poll(list(self._recorder.finished))
         if not self._pending or self._recorder is None or self._journal is None:
             return
         finished = set(self._recorder.finished)
