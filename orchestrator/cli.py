@@ -160,13 +160,16 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    """Print what an episode file holds: metadata and message counts per channel."""
+    """Print what episode files (or the episodes of folders) hold: metadata, message counts per channel, rates,
+    gaps, drops and keypoint coverage (orchestrator.episode_stats), and a summary over several files."""
     from mcap.reader import make_reader
 
+    from orchestrator.episode_stats import episode_stats, expand_inputs, folder_summary, format_summary
     from tdrecord import read_episode_metadata
 
-    for p in args.files:
-        path = Path(p)
+    stats: list[dict[str, Any]] = []
+    metas: list[dict[str, Any]] = []
+    for path in expand_inputs(args.files):
         with open(path, "rb") as f:
             summary = make_reader(f).get_summary()
         if summary is None or summary.statistics is None:
@@ -179,8 +182,14 @@ def cmd_inspect(args: argparse.Namespace) -> int:
             "duration_s": (st.message_end_time - st.message_start_time) / 1e9,
             "channels": {summary.channels[c].topic: n for c, n in sorted(st.channel_message_counts.items())},
             "metadata": {k: v for k, v in meta.items() if k not in ("calibration", "segments")},
+            "stats": episode_stats(path),
         }
+        stats.append(info["stats"])
+        metas.append(meta)
         print(json.dumps(info, indent=2) if args.json else _pretty(info))
+    if len(stats) > 1:
+        total = folder_summary(stats, metas)
+        print(json.dumps({"summary": total}, indent=2) if args.json else format_summary(total))
     return 0
 
 
@@ -188,6 +197,10 @@ def _pretty(info: dict[str, Any]) -> str:
     lines = [f"{info['file']}  ({info['duration_s']:.2f} s)"]
     lines += [f"  {topic:32s} {n:6d} messages" for topic, n in info["channels"].items()]
     lines += [f"  {k} = {json.dumps(v)}" for k, v in info["metadata"].items()]
+    if "stats" in info:
+        from orchestrator.episode_stats import format_stats
+
+        lines += format_stats(info["stats"])
     return "\n".join(lines)
 
 
@@ -236,10 +249,13 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("config")
     v.set_defaults(func=cmd_validate)
 
-    i = sub.add_parser("inspect", help="show what episode files hold")
-    i.add_argument("files", nargs="+")
+    i = sub.add_parser("inspect", help="show what episode files hold: channels, metadata, rates, gaps, drops, "
+                       "keypoint coverage")
+    i.add_argument("files", nargs="+", metavar="FILE|FOLDER")
     i.add_argument("--json", action="store_true")
-    i.set_defaults(func=cmd_inspect)
+    from orchestrator.episode_stats import pipe_safe
+
+    i.set_defaults(func=pipe_safe(cmd_inspect))
 
     rc = sub.add_parser("recover", help="recover unfinished episode files after a crash")
     rc.add_argument("directory")

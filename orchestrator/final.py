@@ -138,10 +138,10 @@ def rewrite_episode(path: Path, fk: FinalKeypoints, meta_update: dict[str, Any])
     tmp = path.with_name(path.name + TMP_SUFFIX)
     try:
         written = _copy_with_final(path, tmp, fk, meta_update, by_frame)
+        os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    os.replace(tmp, path)
     fsync_dir(path.parent)
     return written
 
