@@ -43,6 +43,7 @@ from orchestrator.fsutil import fsync_dir
 log = logging.getLogger(__name__)
 
 TMP_SUFFIX = ".final-tmp"
+LOCK_NAME = "final.lock"
 TRACKER_NAME = "trackdeform3d offline (forward + backward fill, symmetric moving average)"
 
 
@@ -245,9 +246,24 @@ def _copy_with_final(path: Path, tmp: Path, fk: FinalKeypoints, meta_update: dic
 
 
 def finalize_run(files: list[Path], tracking: Any, software: str = "") -> dict[str, Any]:  # noqa: ANN401
-    """Track one run and rewrite each of its episodes; the result the journal's ``final`` record holds."""
-    t0 = time.monotonic()
+    """Track one run and rewrite each of its episodes; the result the journal's ``final`` record holds.
+
+    Holds an exclusive lock on the folder's ``final.lock`` throughout, so two finalisers (a session and an
+    orphan of a killed one) never write the same ``.final-tmp``; the second waits, then redoes the run.
+    """
+    import fcntl
+
     files = [Path(f) for f in files]
+    if not files:
+        return {"status": "failed", "reason": "no episode files", "episodes": [], "frames": 0, "frames_with_final": 0}
+    with open(files[0].parent / LOCK_NAME, "a") as lock:
+        fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
+        return _finalize_locked(files, tracking, software)
+
+
+def _finalize_locked(files: list[Path], tracking: Any, software: str) -> dict[str, Any]:  # noqa: ANN401
+    """:func:`finalize_run` under the folder's lock."""
+    t0 = time.monotonic()
     for f in files:  # a crash mid-rewrite left these; the originals are intact
         stale = f.with_name(f.name + TMP_SUFFIX)
         if stale.exists():
@@ -284,9 +300,9 @@ def main(argv: list[str] | None = None) -> int:
     tracking = TrackingConfig.model_validate(job.get("tracking") or {})
     try:
         result = finalize_run([Path(f) for f in job["files"]], tracking, job.get("software") or __version__)
-    except Exception as e:  # reported to the session, which journals it
+    except Exception as e:  # reported to the session, which journals it; "error" is retried by the next session
         log.exception("final tracking of %s failed", job.get("files"))
-        result = {"status": "failed", "reason": f"{type(e).__name__}: {e}",
+        result = {"status": "error", "reason": f"{type(e).__name__}: {e}",
                   "episodes": [Path(f).name for f in job.get("files", [])], "frames": 0, "frames_with_final": 0}
     sys.stdout.write(json.dumps(result) + "\n")
     sys.stdout.flush()
@@ -399,7 +415,7 @@ class FinalTracker:
                 proc = subprocess.Popen([sys.executable, "-m", "orchestrator.final"], stdin=subprocess.PIPE,
                                         stdout=subprocess.PIPE, stderr=logf, preexec_fn=_lower_priority)
             except OSError as e:
-                return {"status": "failed", "reason": f"could not start: {e}", "episodes": [f.name for f in job.files]}
+                return {"status": "error", "reason": f"could not start: {e}", "episodes": [f.name for f in job.files]}
             with self._lock:
                 self._proc = proc
             stdout, _ = proc.communicate(json.dumps(spec).encode())
@@ -409,17 +425,21 @@ class FinalTracker:
         try:
             return json.loads(lines[-1])
         except (IndexError, json.JSONDecodeError):
-            return {"status": "failed", "reason": f"the final-tracking process exited {proc.returncode} without a "
+            return {"status": "error", "reason": f"the final-tracking process exited {proc.returncode} without a "
                     f"result (see {self.out_dir / 'final.log'})", "episodes": [f.name for f in job.files]}
 
 
 def pending_runs(records: list[dict[str, Any]], out_dir: Path) -> list[tuple[dict[str, Any], list[Path]]]:
     """Runs of a journal whose episodes have no ``final`` record yet: (run key fields, existing files in order).
 
+    A ``final`` record counts when its status is ``done`` or ``failed`` (the object was never initialised: doing
+    it again gives the same); ``error`` (the process died, a disk error) is tried again.
+
     ``run`` records (done or failed) name their episodes; episodes a cut-short run left (a ``start`` without a
     ``run`` record) are found from the next ``start``'s ``first_episode`` (or the folder's last file).
     """
-    finalised = {e for r in records if r.get("type") == "final" for e in r.get("episodes", [])}
+    finalised = {e for r in records if r.get("type") == "final" and r.get("status") in ("done", "failed")
+                 for e in r.get("episodes", [])}
     runs: list[tuple[dict[str, Any], list[str]]] = []
     starts = [r for r in records if r.get("type") == "start"]
     named: set[str] = set()

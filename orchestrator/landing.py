@@ -175,7 +175,7 @@ class Landing:
             fk["frames"] += int(rec["frames"] or 0)
             fk["frames_with_final"] += int(rec["frames_with_final"] or 0)
             self.manifest.add(files, refresh=True)
-        else:
+        else:  # failed: never initialised (kept); error: tried again by the next session on the folder
             fk["runs_failed"] += 1
             msg = f"final keypoints of {', '.join(f.name for f in files)}: {rec['reason']}"
             self.progress.message(msg)

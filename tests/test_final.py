@@ -193,6 +193,7 @@ def test_pending_runs_from_the_journal(tmp_path: Path) -> None:
         {"type": "final", **run, "status": "done", "episodes": ["episode_000000.mcap", "episode_000001.mcap"]},
         {"type": "start", **run, "repeat": 1, "first_episode": 2},
         {"type": "run", **run, "repeat": 1, "outcome": "done", "episodes": ["episode_000002.mcap"]},
+        {"type": "final", **run, "repeat": 1, "status": "error", "episodes": ["episode_000002.mcap"]},  # retried
         {"type": "start", **run, "repeat": 2, "first_episode": 3},  # cut short by a crash: no run record
     ]
     pending = pending_runs(records, tmp_path)
