@@ -267,3 +267,41 @@ def test_sim_time_demo_every_frame_has_final_keypoints_and_resumes(tmp_path: Pat
     assert [e["file"] for e in entries] == [p.name for p in files]
     assert all(e["keypoints"] == ["live", "final"] for e in entries)
     assert not list(out.glob(f"*{TMP_SUFFIX}"))
+
+
+def test_landing_journals_final_records_and_pending_on_stop(tmp_path: Path) -> None:
+    """Runs go to the background process once their files are final; its result is journaled as ``final``; a
+    stop leaves the queued runs as ``final_pending`` (and pending_runs finds them for the next session)."""
+    from orchestrator.config import DEFAULT_CONFIG
+    from orchestrator.journal import Journal
+    from orchestrator.landing import Landing
+    from orchestrator.progress import Progress
+    from orchestrator.summary import SessionSummary
+
+    config = load_config(DEFAULT_CONFIG, {"bus.enabled": False})
+    paths = [tmp_path / f"episode_{k:06d}.mcap" for k in range(3)]
+    for k, p in enumerate(paths):
+        _write(p, [3 * k, 3 * k + 1, 3 * k + 2], live=())  # noise frames: the object is never initialised
+    journal = Journal.open(tmp_path, config)
+    try:
+        summary = SessionSummary(tmp_path)
+        landing = Landing(tmp_path, config, journal, summary, Progress(enabled=False))
+        run = {"object": "rope", "program": "rope_swing", "speed": "medium", "repeat": 0, "pass": 0, "attempt": 1}
+        landing.run_ended(run, paths[:2])
+        landing.poll([paths[0]])  # not all of the run's files are final yet: nothing to do
+        assert landing.tracker is not None and landing.tracker.pending == 0
+        landing.finish(paths[:2], stop_requested=False)
+        finals = [r for r in journal.records if r["type"] == "final"]
+        assert len(finals) == 1 and finals[0]["status"] == "failed" and "never initialised" in finals[0]["reason"]
+        assert finals[0]["episodes"] == ["episode_000000.mcap", "episode_000001.mcap"]
+        assert summary.final_keypoints["runs_failed"] == 1
+        assert [e["file"] for e in read_manifest(tmp_path)] == [p.name for p in paths]  # all listed at start
+
+        stopped = Landing(tmp_path, config, journal, SessionSummary(tmp_path), Progress(enabled=False))
+        stopped.run_ended({**run, "repeat": 1}, paths[2:])
+        stopped.finish(paths, stop_requested=True)
+        pending = [r for r in journal.records if r["type"] == "final_pending"]
+        assert len(pending) == 1 and pending[0]["runs"][0]["episodes"] == ["episode_000002.mcap"]
+        assert not list(tmp_path.glob(f"*{TMP_SUFFIX}"))
+    finally:
+        journal.close()
