@@ -21,11 +21,12 @@ GAP_FACTOR = 1.5  # an interval longer than this many nominal periods is a gap
 
 
 def expand_inputs(paths: Iterable[str]) -> list[Path]:
-    """Files as given; a folder becomes its ``episode_*.mcap`` and ``*.mcap.active`` files, in name order."""
+    """Files as given; a folder becomes its finished ``*.mcap`` files, in name order (unfinished ``.active``
+    ones are ``trackdeform recover``'s)."""
     out: list[Path] = []
     for p in map(Path, paths):
         if p.is_dir():
-            out += sorted([*p.glob("*.mcap"), *p.glob("*.mcap.active")])
+            out += sorted(p.glob("*.mcap"))
         else:
             out.append(p)
     return out
@@ -75,7 +76,7 @@ def episode_stats(path: Path) -> dict[str, Any]:
         for _, channel, msg in reader.iter_messages(topics=wanted):
             d = json.loads(msg.data)
             if channel.topic.endswith("/frame_info"):
-                frames.append((int(d["frame_number"]), float(d.get("device_stamp", np.nan)),
+                frames.append((int(d.get("frame_number", -1)), float(d.get("device_stamp", np.nan)),
                                float(d.get("host_stamp", np.nan))))
             elif channel.topic == "/arms/state":
                 states.append(float(d.get("stamp", np.nan)))
