@@ -167,16 +167,23 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    """Print what episode files hold: metadata and message counts per channel.
+    """Print what episode files (or the episodes of folders) hold: metadata, message counts per channel, rates,
+    gaps, drops and keypoint coverage (orchestrator.episode_stats), and a summary over several files.
 
     A file that cannot be read gets one ``error: FILE: ...`` line on stderr and the next file is
     shown; the exit code is 2 when any file failed.
     """
+    from orchestrator.episode_stats import episode_stats, expand_inputs, folder_summary, format_summary
+
     failed = 0
-    for p in args.files:
-        path = Path(p)
+    stats: list[dict[str, Any]] = []
+    metas: list[dict[str, Any]] = []
+    files = expand_inputs(args.files)
+    for path in files:
         try:
             info = _inspect_one(path)
+            if info is not None:
+                info["stats"] = episode_stats(path)
         except Exception as e:  # any broken file: one line naming it, then the next file
             print(f"error: {path}: {_unreadable(e)}", file=sys.stderr)
             failed += 1
@@ -184,9 +191,14 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         if info is None:
             print(f"{path}: no summary (unfinished file? run `trackdeform recover {path.parent}`)")
             continue
+        stats.append(info["stats"])
+        metas.append(info.pop("_metadata"))
         print(json.dumps(info, indent=2) if args.json else _pretty(info), flush=True)
+    if len(stats) > 1:
+        total = folder_summary(stats, metas)
+        print(json.dumps({"summary": total}, indent=2) if args.json else format_summary(total))
     if failed:
-        print(f"error: {failed} of {len(args.files)} file(s) could not be read", file=sys.stderr)
+        print(f"error: {failed} of {len(files)} file(s) could not be read", file=sys.stderr)
         return 2
     return 0
 
@@ -224,6 +236,7 @@ def _inspect_one(path: Path) -> dict[str, Any] | None:
         "duration_s": (st.message_end_time - st.message_start_time) / 1e9,
         "channels": {summary.channels[c].topic: n for c, n in sorted(st.channel_message_counts.items())},
         "metadata": {k: v for k, v in meta.items() if k not in ("calibration", "segments")},
+        "_metadata": meta,
     }
 
 
@@ -231,6 +244,10 @@ def _pretty(info: dict[str, Any]) -> str:
     lines = [f"{info['file']}  ({info['duration_s']:.2f} s)"]
     lines += [f"  {topic:32s} {n:6d} messages" for topic, n in info["channels"].items()]
     lines += [f"  {k} = {json.dumps(v)}" for k, v in info["metadata"].items()]
+    if "stats" in info:
+        from orchestrator.episode_stats import format_stats
+
+        lines += format_stats(info["stats"])
     return "\n".join(lines)
 
 
@@ -293,10 +310,13 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("config")
     v.set_defaults(func=cmd_validate)
 
-    i = sub.add_parser("inspect", help="show what episode files hold")
-    i.add_argument("files", nargs="+")
+    i = sub.add_parser("inspect", help="show what episode files hold: channels, metadata, rates, gaps, drops, "
+                       "keypoint coverage")
+    i.add_argument("files", nargs="+", metavar="FILE|FOLDER")
     i.add_argument("--json", action="store_true")
-    i.set_defaults(func=cmd_inspect)
+    from orchestrator.episode_stats import pipe_safe
+
+    i.set_defaults(func=pipe_safe(cmd_inspect))
 
     rc = sub.add_parser("recover", help="recover unfinished episode files after a crash")
     rc.add_argument("directory")

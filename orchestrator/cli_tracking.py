@@ -104,7 +104,8 @@ def _arm_geometry(seq: Any, i: int, arms: Any) -> tuple[Any, Any, Any, Any]:
 def track_sequence(seq: Any, params: Any, kind: str | None, progress: bool = True) -> dict[str, Any]:
     """Run the pipeline over every frame, then fill the frames left without keypoints (before initialisation,
     after a loss) by tracking from their tracked neighbour (``tracking.offline.fill_missing``); returns raw
-    keypoints (T, N, 3) m (NaN only where no frame was ever tracked), topology, metrics. The frames without
+    keypoints (T, N, 3) m (NaN only where no frame was ever tracked), topology, metrics and grasp (T entries:
+    (G,) int64 keypoint held per gripper, or None). The frames without
     keypoints are kept in memory for the second pass (their uint16 depth, ~2 MB each at 1280x720)."""
     from orchestrator.worker import ArmModel
     from tracking.metrics import sequence_summary, surface_error_mm
@@ -170,7 +171,7 @@ def track_sequence(seq: Any, params: Any, kind: str | None, progress: bool = Tru
     metrics["statuses"] = {s: statuses.count(s) for s in sorted(set(statuses))}
     if gt_mm:
         metrics["gt_rmse_mm"] = float(np.sqrt(np.mean(np.square(gt_mm))))
-    return {"raw": full, "topology": topology, "metrics": metrics}
+    return {"raw": full, "topology": topology, "metrics": metrics, "grasp": grasp}
 
 
 def cmd_track(args: argparse.Namespace) -> int:

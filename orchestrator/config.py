@@ -116,6 +116,7 @@ class TrackingConfig(StrictModel):
     gap_seconds: float = Field(
         1.0, gt=0.0, le=600.0,
         description="frames without keypoints for at least this long (camera time, s) count as a tracking gap")
+    final: bool = Field(True, description="after each run, track its frames offline and add /keypoints/final")
 
     @field_validator("final_window")
     @classmethod

@@ -24,7 +24,8 @@ from orchestrator.capture import EpisodeStream, RunCapture, RunContext
 from orchestrator.config import Config
 from orchestrator.fsutil import SpaceReserve
 from orchestrator.health import SessionMonitor
-from orchestrator.journal import Journal, RunKey, now_iso, record_key, run_key
+from orchestrator.journal import Journal, RunKey, key_fields, now_iso, record_key, run_key
+from orchestrator.landing import Landing
 from orchestrator.live import KeypointGate
 from orchestrator.plan import RunItem, build_plan
 from orchestrator.progress import Progress
@@ -85,6 +86,7 @@ class Session:
         self._runs_done_here = 0
         self._reserve: SpaceReserve | None = None
         self.finishing = finishing or threading.Event()  # set once the last files and the summary are written
+        self._landing: Landing | None = None  # manifest + final keypoints of the runs (orchestrator.landing)
 
     # ------------------------------------------------------------------ public
     def run(self, max_seconds: float | None = None, loop: bool = False) -> SessionSummary:
@@ -120,6 +122,7 @@ class Session:
             )
             self._stream.monitor = monitor
             self._start_tracking(cam.fps)
+            self._landing = Landing(self.out_dir, self.config, journal, self.summary, self.progress, __version__)
             items = build_plan(self.config.plan)
             try:
                 self._run_plan(items, journal, loop)
@@ -240,6 +243,8 @@ class Session:
             if self._recorder is not None:
                 self._recorder.stop()
                 self._with_space(lambda: self._flush_pending(final=True))
+                if self._landing is not None:
+                    self._landing.finish(list(self._recorder.finished), self.stop_event.is_set())
         finally:
             journal.close()
             if self._reserve is not None:
@@ -367,6 +372,8 @@ class Session:
                 monitor.set_state("idle", f"{item.label}: {outcome}")
         if outcome == "done":
             self._runs_done_here += 1
+        if self._landing is not None:
+            self._landing.run_ended({**key_fields(key), "pass": self._pass, "attempt": attempt}, episodes)
         if outcome == "low_disk":
             assert reason is not None
             self._journal_run(item, "failed", f"low disk space: {reason}", episodes, wall)
@@ -441,6 +448,8 @@ class Session:
 
     def _flush_pending(self, final: bool) -> None:
         """Journal the "done" runs whose episode files are all final; with ``final``, the rest as failed."""
+        if self._landing is not None and self._recorder is not None:
+            self._landing.poll(list(self._recorder.finished))
         if not self._pending or self._recorder is None or self._journal is None:
             return
         finished = set(self._recorder.finished)

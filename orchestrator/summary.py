@@ -40,6 +40,7 @@ class SessionSummary:
     recorded_seconds: float = 0.0
     wall_seconds: float = 0.0
     stopped_early: str | None = None
+    final_keypoints: dict[str, Any] = field(default_factory=dict)  # orchestrator.landing: offline final tracking
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-friendly dict."""
@@ -72,6 +73,13 @@ class SessionSummary:
         if self.runs_planned:
             pass_txt = f" (pass {self.plan_pass + 1})" if self.plan_pass else ""
             lines.append(f"plan progress    : {self.plan_runs_done} of {self.runs_planned} runs done{pass_txt}")
+        fk = self.final_keypoints
+        if fk.get("enabled"):
+            lines.append(f"final keypoints  : {fk['runs_done']} run(s), {fk['frames_with_final']} of {fk['frames']} "
+                         f"frames of {fk['episodes']} episode(s)"
+                         + (f"; {fk['runs_failed']} run(s) failed" if fk["runs_failed"] else "")
+                         + (f"; {fk['runs_pending']} run(s) pending (the next session on the folder tracks them)"
+                            if fk["runs_pending"] else ""))
         for label in self.runs_cut_short:
             lines.append(f"cut short        : {label}")
         if self.keypoints_recorded or self.tracking_gaps:

@@ -84,7 +84,8 @@ SCHEMAS: dict[str, dict[str, Any]] = {
          "status": {"type": "string", "description": "init, tracking or lost"},
          "abs_mm": {"type": "number", "description": "mean keypoint-to-cloud distance, mm"},
          "cd_mm": {"type": "number", "description": "Chamfer distance, mm"},
-         "anchors": _array(_INT, "keypoints anchored this frame")},
+         "anchors": _array(_INT, "keypoints anchored this frame"),
+         "rest_lengths": _array(_NUM, "rest length of each edge, m")},
         ["frame_number", "keypoints", "edges"],
     ),
     "trackdeform.GroundTruth": _object(

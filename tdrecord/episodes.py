@@ -309,8 +309,9 @@ def episode_files(path: Path) -> tuple[list[Path], list[Path]]:
     return [path], []
 
 
-def read_episodes(path: str | Path, camera_id: str | None = None) -> Sequence:
-    """An episode ``.mcap`` or a folder of them (sorted by name) as one Sequence, frames decoded lazily.
+def read_episodes(path: str | Path | list[Path], camera_id: str | None = None) -> Sequence:
+    """An episode ``.mcap``, a folder of them (sorted by name) or a list of files (in that order) as one
+    Sequence, frames decoded lazily.
 
     Joint states, grasp flags and TCP poses (from ``u``, world frame) of a frame are those recorded at its
     capture time (``/arms/state_at_frame``: interpolated by the recorder's camera–arm time sync), else
@@ -319,8 +320,12 @@ def read_episodes(path: str | Path, camera_id: str | None = None) -> Sequence:
     metadata (else the calibration channel and ``/tf``); every file must agree on it. Unfinished
     ``.active`` files are an error when named, skipped with a warning inside a folder.
     """
-    path = Path(path)
-    files, active = episode_files(path)
+    if isinstance(path, (list, tuple)):  # one program run's episodes
+        files, active = [Path(p) for p in path], []
+        path = files[0].parent if files else Path(".")
+    else:
+        path = Path(path)
+        files, active = episode_files(path)
     if path.is_file() and active:
         raise DatasetError(unfinished_message(path))
     if not path.exists():

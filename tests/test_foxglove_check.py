@@ -89,3 +89,7 @@ def test_sim_time_demo_episodes_pass(tmp_path: Path, checker: Path, port: int) -
     assert len(files) >= 2
     report = _check(checker, *files)
     assert len(report["files"]) == len(files)
+    for f in report["files"]:  # the final keypoints (tracked after each run) parse, one per frame
+        channels = {c["topic"]: c for c in f["channels"]}
+        final = channels["/keypoints/final"]
+        assert final["decoded"] == final["count"] == channels["/cam/cam0/color"]["count"], final
