@@ -28,7 +28,6 @@ import numpy as np
 from orchestrator.progress import Progress, bar
 from tdrecord import RecordedRun, Sequence, read_episodes, recorded_runs, write_paper_layout, write_reference_npz
 
-KEYPOINT_TOPICS = ("/keypoints/final", "/keypoints")  # preferred first
 LEROBOT_EXTRA = "pip install 'trackdeform3d[lerobot]'"
 RUN_FIELDS = ("object", "category", "program", "speed", "repeat", "attempt", "plan_pass", "session_started")
 
@@ -40,52 +39,27 @@ class ExportError(ValueError):
 @dataclass
 class EpisodeKeypoints:
     """Keypoints of one episode per frame: X (T, N, 3) m world (NaN where a frame has none), edges (E, 2),
-    rest lengths (E,) m, grasp indices (T, 2) (-1 none) and which channel they came from."""
+    rest lengths (E,) m, grasp indices (T, 2) (-1 none), the arm input u_t per frame (T, 12) and which
+    keypoints they are ("final" or "live")."""
 
     X: np.ndarray
     edges: np.ndarray
     rest: np.ndarray
     grasp: np.ndarray
+    u: np.ndarray
     source: str
 
 
-def episode_keypoints(path: Path, frame_numbers: np.ndarray) -> EpisodeKeypoints | None:
-    """The keypoints recorded in an episode for its frames ``frame_numbers`` (T,), or None when it has none."""
-    from mcap.reader import make_reader
+def episode_keypoints(path: Path) -> EpisodeKeypoints | None:
+    """An episode's final keypoints where it holds them, else its live ones; None when it has neither."""
+    from tdrecord import load_episode
 
-    from tdcommon.wire import edges_from_json, points_from_json
-
-    with open(path, "rb") as f:
-        reader = make_reader(f)
-        summary = reader.get_summary()
-        topics = {c.topic for c in summary.channels.values()} if summary else set()
-        topic = next((t for t in KEYPOINT_TOPICS if t in topics), None)
-        if topic is None:
-            return None
-        msgs = {}
-        for _, _, m in reader.iter_messages(topics=[topic]):
-            d = json.loads(m.data)
-            if d.get("status") in ("init", "tracking") or topic == "/keypoints/final":
-                msgs[int(d.get("frame_number", -1))] = d
-    if not msgs:
+    ep = load_episode(path, images=False)
+    X = ep.keypoints
+    if X.size == 0 or not np.isfinite(X).any():
         return None
-    first = next(iter(msgs.values()))
-    n = len(points_from_json(first.get("keypoints", [])))
-    edges = edges_from_json(first.get("edges", []))
-    rest = np.asarray(first.get("rest_lengths") or [np.nan] * len(edges), dtype=np.float64)
-    T = len(frame_numbers)
-    X = np.full((T, n, 3), np.nan)
-    grasp = np.full((T, 2), -1, dtype=np.int64)
-    for i, fn in enumerate(np.asarray(frame_numbers).tolist()):
-        d = msgs.get(int(fn))
-        if d is None:
-            continue
-        p = points_from_json(d.get("keypoints", []))
-        if len(p) == n:
-            X[i] = p
-            g = d.get("grasp_indices") or {}
-            grasp[i] = [int(g.get("left", -1)), int(g.get("right", -1))]
-    return EpisodeKeypoints(X, edges, rest, grasp, topic)
+    return EpisodeKeypoints(X, ep.edges, ep.rest_lengths, ep.grasp_indices, ep.u_frame,
+                            "final" if ep.keypoints_final is not None else "live")
 
 
 def _session_runs(session: Path) -> list[RecordedRun]:
@@ -120,7 +94,7 @@ def export_paper(session: Path, out: Path, progress: Progress) -> list[Path]:
         write_paper_layout(folder, seq.frames, T_world_cam=seq.T_world_cam, T_world_base=seq.T_world_base,
                            tcp_left=seq.tcp_left, tcp_right=seq.tcp_right, q_left=seq.q_left, q_right=seq.q_right,
                            K=seq.K)
-        kp = episode_keypoints(path, seq.frame_numbers)
+        kp = episode_keypoints(path)
         if kp is not None:
             write_reference_npz(folder, kp.X, kp.edges, kp.rest)
         meta = {"source": str(path), "keypoints": kp.source if kp is not None else None,
@@ -159,20 +133,6 @@ def _features(h: int, w: int, n_keypoints: int) -> dict[str, dict[str, Any]]:
     }
 
 
-def _u_per_frame(seq: Sequence) -> np.ndarray:
-    """(T, 12) arm input u_t at each frame (from the TCP poses the reader aligned to the frames)."""
-    from tdcommon.transforms import pose_to_input
-
-    T = len(seq)
-    if seq.tcp_left is None or seq.tcp_right is None:
-        return np.full((T, 12), np.nan)
-    u = np.full((T, 12), np.nan)
-    for i in range(T):
-        if np.isfinite(seq.tcp_left[i]).all() and np.isfinite(seq.tcp_right[i]).all():
-            u[i] = np.concatenate([pose_to_input(seq.tcp_left[i]), pose_to_input(seq.tcp_right[i])])
-    return u
-
-
 def export_lerobot(session: Path, out: Path, progress: Progress, *, vcodec: str = "h264") -> list[Path]:
     """One LeRobot dataset per object under ``out/<object>``, one LeRobot episode per program run."""
     from PIL import Image
@@ -198,7 +158,7 @@ def export_lerobot(session: Path, out: Path, progress: Progress, *, vcodec: str 
             for k, path in enumerate(run.episodes):
                 progress.update(f"{bar(done, total)} | {obj}: {path.name}", force=True)
                 seq = read_episodes(path)
-                kp = episode_keypoints(path, seq.frame_numbers)
+                kp = episode_keypoints(path)
                 if kp is None:
                     raise ExportError(f"{path}: no keypoints recorded (run `trackdeform track` on the session first)")
                 if n_kp is None:
@@ -209,7 +169,7 @@ def export_lerobot(session: Path, out: Path, progress: Progress, *, vcodec: str 
                     )
                 elif kp.X.shape[1] != n_kp:
                     raise ExportError(f"{path}: {kp.X.shape[1]} keypoints, the dataset of {obj} has {n_kp}")
-                u = _u_per_frame(seq)
+                u = kp.u
                 q = [seq.q_left, seq.q_right]
                 widths = [seq.gripper_width_left, seq.gripper_width_right]
                 task = f"{obj}: {run.first.get('program')} at {run.first.get('speed')} speed"

@@ -71,7 +71,7 @@ def test_paper_export_round_trips(tmp_path: Path) -> None:
     ref = read_reference_npz(folders[1])
     assert ref.keypoints.shape == (6, N, 3) and ref.edges.shape == (N - 1, 2)
     np.testing.assert_allclose(ref.keypoints[2], _keypoints(8), atol=1e-9)  # frame 8 is this episode's third
-    assert json.loads((folders[1] / "meta.json").read_text())["keypoints"] == "/keypoints"
+    assert json.loads((folders[1] / "meta.json").read_text())["keypoints"] == "live"
 
 
 def test_export_errors_name_the_folder(tmp_path: Path, capsys) -> None:
