@@ -14,6 +14,7 @@ import yaml
 from pydantic import Field, ValidationError, field_validator, model_validator
 
 from drivers.config import ArmConfig, CameraConfig, GripperConfig, SimObjectConfig, StrictModel
+from orchestrator.zenoh_security import BusAclConfig, BusTlsConfig, check_endpoints
 from tdcommon.objects import Category
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -123,6 +124,13 @@ class BusConfig(StrictModel):
     listen: list[str] = Field(default=["tcp/127.0.0.1:7447"], description="zenoh endpoints to listen on")
     connect: list[str] = Field(default=[], description="zenoh endpoints (peers or a zenohd router)")
     multicast_scouting: bool = False
+    tls: BusTlsConfig | None = Field(None, description="TLS files for tls/ endpoints (several hosts)")
+    access_control: BusAclConfig | None = Field(None, description="zenoh ACL: who may put/subscribe on which keys")
+
+    @model_validator(mode="after")
+    def _tls_endpoints(self) -> BusConfig:
+        check_endpoints(self.tls, self.listen, self.connect)
+        return self
 
     @field_validator("listen", "connect")
     @classmethod
