@@ -22,7 +22,7 @@ t1=$(date +%s)
 ca_files="${TRACKDEFORM_EXTRA_CA-}"
 if [ -z "$ca_files" ] && [ -f /etc/ssl/certs/ca-certificates.crt ]; then ca_files=/etc/ssl/certs/ca-certificates.crt; fi
 cleanup_ca() { find docker/ca -maxdepth 1 -name 'extra-*.crt' -delete; }
-trap cleanup_ca EXIT
+trap 'cleanup_ca; stop_started_dockerd' EXIT
 cleanup_ca
 n=0
 IFS=: read -r -a cas <<< "$ca_files"

@@ -12,6 +12,7 @@ T0=$(date +%s)
 
 rc=0; ensure_docker || rc=$?
 if [ "$rc" = 3 ]; then echo "docker-check skipped: $SKIP_REASON"; exit 0; elif [ "$rc" != 0 ]; then exit 1; fi
+trap stop_started_dockerd EXIT
 docker/build.sh
 T_BUILD=$(date +%s)
 
@@ -26,6 +27,7 @@ teardown() {
     dc logs --no-color > "$run/compose.log" 2>&1 || true
     dc down --remove-orphans -t 10 >/dev/null 2>&1 || true
     if [ "$ok" = 1 ]; then rm -rf "$run"; else echo "docker-check: logs and data kept in $run" >&2; fi
+    stop_started_dockerd   # a dockerd this check started does not outlive it
 }
 trap teardown EXIT
 

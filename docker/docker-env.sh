@@ -4,6 +4,15 @@
 # and debootstrap, and starts dockerd itself when no service manager runs it (its log: $DOCKERD_LOG).
 DOCKERD_LOG="${DOCKERD_LOG:-/var/tmp/trackdeform-dockerd.log}"
 SKIP_REASON=""
+STARTED_DOCKERD=""   # the pid of the dockerd this script started (stop_started_dockerd stops it)
+
+stop_started_dockerd() {
+    [ -n "$STARTED_DOCKERD" ] || return 0
+    kill -TERM "$STARTED_DOCKERD" 2>/dev/null || return 0
+    local i
+    for i in $(seq 30); do kill -0 "$STARTED_DOCKERD" 2>/dev/null || break; sleep 1; done
+    STARTED_DOCKERD=""
+}
 
 compose() {
     if command -v docker-compose >/dev/null 2>&1; then docker-compose "$@"; else docker compose "$@"; fi
@@ -28,10 +37,12 @@ ensure_docker() {
         if [ "$(id -u)" != 0 ]; then SKIP_REASON="no docker daemon answers and only root can start one"; return 3; fi
         echo "starting dockerd (log $DOCKERD_LOG)"
         nohup dockerd >"$DOCKERD_LOG" 2>&1 &
+        STARTED_DOCKERD=$!
         local i
         for i in $(seq 60); do
             docker info >/dev/null 2>&1 && break
-            if ! kill -0 $! 2>/dev/null; then
+            if ! kill -0 "$STARTED_DOCKERD" 2>/dev/null; then
+                STARTED_DOCKERD=""
                 if grep -qiE 'operation not permitted|permission denied|cannot .*cgroup|iptables' "$DOCKERD_LOG"; then
                     SKIP_REASON="dockerd cannot run in this sandbox: $(grep -iE 'level=(error|fatal)' "$DOCKERD_LOG" | tail -1)"
                     return 3
