@@ -34,7 +34,7 @@ ensure_docker() {
             || { echo "error: apt-get install ${need[*]} failed" >&2; return 1; }
     fi
     if ! docker info >/dev/null 2>&1; then
-        if [ "$(id -u)" != 0 ]; then SKIP_REASON="no docker daemon answers and only root can start one"; return 3; fi
+        if [ "$(id -u)" != 0 ]; then SKIP_REASON="no docker daemon that $(id -un) may use, and only root can start one"; return 3; fi
         echo "starting dockerd (log $DOCKERD_LOG)"
         nohup dockerd >"$DOCKERD_LOG" 2>&1 &
         STARTED_DOCKERD=$!
