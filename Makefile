@@ -7,7 +7,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEMO_ARGS ?=
 
-.PHONY: demo test test-quick lint bench system-deps clean
+.PHONY: demo test test-quick lint bench system-deps clean docker-build docker-check
 
 demo: $(STAMP)
 	$(BIN)/trackdeform demo $(DEMO_ARGS)
@@ -28,6 +28,14 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	for b in benchmarks/*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
+
+# Containers (README "Deployment"): the images, then a 30 s router + daemon + worker run on the mock config.
+# docker-check prints "skipped: <reason>" and succeeds where docker cannot run (not root, no apt).
+docker-build:
+	bash docker/build.sh
+
+docker-check:
+	bash docker/check.sh
 
 # open3d and pyrealsense2 need libusb-1.0 to import.
 system-deps:

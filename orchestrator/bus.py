@@ -15,6 +15,7 @@ from collections.abc import Callable
 from typing import Any
 
 from orchestrator.config import BusConfig
+from orchestrator.zenoh_security import zenoh_security_json5
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +34,8 @@ def zenoh_config(bus: BusConfig, *, listen: bool = True, connect: list[str] | No
     c.insert_json5("scouting/gossip/enabled", json.dumps(bus.multicast_scouting))
     c.insert_json5("listen/endpoints", json.dumps(bus.listen if listen else []))
     c.insert_json5("connect/endpoints", json.dumps(bus.connect if connect is None else connect))
+    for key, value in zenoh_security_json5(bus.tls, bus.access_control).items():  # TLS and ACL, when configured
+        c.insert_json5(key, json.dumps(value))
     return c
 
 

@@ -323,7 +323,8 @@ def build_parser() -> argparse.ArgumentParser:
     rc.set_defaults(func=cmd_recover)
 
     for module in ("orchestrator.cli_program", "orchestrator.cli_tracking", "orchestrator.cli_devices",
-                   "orchestrator.cli_live", "orchestrator.report", "orchestrator.cli_eval", "orchestrator.export"):
+                   "orchestrator.cli_live", "orchestrator.report", "orchestrator.cli_eval", "orchestrator.export",
+                   "orchestrator.cli_router"):
         try:
             mod = __import__(module, fromlist=["register"])
         except ModuleNotFoundError as e:

@@ -14,6 +14,7 @@ import yaml
 from pydantic import Field, ValidationError, field_validator, model_validator
 
 from drivers.config import ArmConfig, CameraConfig, GripperConfig, SimObjectConfig, StrictModel
+from orchestrator.zenoh_security import BusAclConfig, BusTlsConfig, check_endpoints
 from tdcommon.objects import Category
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -139,6 +140,13 @@ class BusConfig(StrictModel):
     connect: list[str] = Field(default=[], description="zenoh endpoints (peers or a zenohd router)")
     multicast_scouting: bool = False
     health_period: float = Field(1.0, gt=0.0, le=60.0, description="s between <prefix>/<station>/health messages")
+    tls: BusTlsConfig | None = Field(None, description="TLS files for tls/ endpoints (several hosts)")
+    access_control: BusAclConfig | None = Field(None, description="zenoh ACL: who may put/subscribe on which keys")
+
+    @model_validator(mode="after")
+    def _tls_endpoints(self) -> BusConfig:
+        check_endpoints(self.tls, self.listen, self.connect)
+        return self
 
     @field_validator("listen", "connect")
     @classmethod
