@@ -14,6 +14,7 @@ import numpy as np
 from drivers.base import Arm, DeviceError, Gripper, RGBDCamera, create_arm, create_camera, create_gripper
 from drivers.clock import Clock
 from orchestrator.config import Config, ObjectConfig
+from orchestrator.recorder import TF_RATE
 from tdcommon.robot import PandaKinematics
 from tdcommon.transforms import pose_to_input
 from tdcommon.types import RGBDFrame
@@ -48,6 +49,7 @@ class Station:
         self.fps = st.camera.fps
         self.broken: str | None = None  # set after a fault that needs a person; no more runs here
         self._connected: list[Any] = []
+        self._links_t = -float("inf")  # when link frames were last computed (station clock, s)
 
     @staticmethod
     def _gripper_context(slot: Any) -> dict[str, Any]:
@@ -87,14 +89,21 @@ class Station:
         self._connected.clear()
 
     def sample_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-        """Both arms' joint states, gripper states and u_t (12,) as the ``arms/state`` message, plus TCP poses."""
+        """Both arms' joint states, gripper states and u_t (12,) as the ``arms/state`` message, plus the
+        frames for ``/tf``: each TCP (``left_tcp``) and each joint of arm and hand (``left/panda_joint1``)."""
         msg: dict[str, Any] = {}
         u, tcps = [], {}
+        now = self.clock.now()
+        links_due = now - self._links_t >= 1.0 / TF_RATE - 1e-9  # link frames only as often as /tf is written
+        if links_due:
+            self._links_t = now
         for n in ARMS:
             js = self.arms[n].read_state()
             gs = self.grippers[n].read_state()
             T = self.kin[n].tcp_pose(js.q)
             tcps[f"{n}_tcp"] = T
+            if links_due:
+                tcps.update({f"{n}/{name}": F for name, F in self.kin[n].link_frames(js.q, gs.width).items()})
             u.append(pose_to_input(T))
             msg[n] = {
                 "stamp": js.stamp, "q": js.q.tolist(), "dq": js.dq.tolist(),

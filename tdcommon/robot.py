@@ -83,6 +83,7 @@ class PandaKinematics:
         self.data = self.model.createData()
         self.T_world_base = np.eye(4) if T_world_base is None else np.asarray(T_world_base, dtype=np.float64)
         self.tcp_id = self.model.getFrameId(TCP_FRAME)
+        self._bodies: list[tuple[str, int, np.ndarray]] | None = None  # link name, parent joint, joint <- link
 
     def _q_full(self, q: np.ndarray, finger_width: float) -> np.ndarray:
         q = np.asarray(q, dtype=np.float64)
@@ -103,6 +104,16 @@ class PandaKinematics:
         pin = self._pin
         pin.forwardKinematics(self.model, self.data, self._q_full(q, finger_width))
         return np.stack([self.T_world_base @ M.homogeneous for M in self.data.oMi])
+
+    def link_frames(self, q: np.ndarray, finger_width: float = 0.08) -> dict[str, np.ndarray]:
+        """(4, 4) world <- link for every link of the arm and hand, by its URDF name (``panda_link0`` ...
+        ``panda_hand``, ``panda_leftfinger``): what a viewer needs to place the arm's URDF meshes."""
+        poses = self.joint_poses(q, finger_width)
+        if self._bodies is None:
+            pin = self._pin
+            self._bodies = [(str(f.name), int(f.parentJoint), f.placement.homogeneous.copy())
+                            for f in self.model.frames if f.type == pin.FrameType.BODY]
+        return {name: poses[j] @ M for name, j, M in self._bodies}
 
     def world_meshes(self, q: np.ndarray, finger_width: float = 0.08) -> tuple[np.ndarray, np.ndarray]:
         """The whole arm as one triangle soup in the world frame.
