@@ -246,7 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
     rc.set_defaults(func=cmd_recover)
 
     for module in ("orchestrator.cli_program", "orchestrator.cli_tracking", "orchestrator.cli_devices",
-                   "orchestrator.report", "orchestrator.cli_eval"):
+                   "orchestrator.report", "orchestrator.cli_eval", "orchestrator.retrack"):
         try:
             mod = __import__(module, fromlist=["register"])
         except ModuleNotFoundError as e:

@@ -457,6 +457,9 @@ def build_report(
     t_start = time.monotonic()
     runs = group_runs(files)
     done = 0
+    from orchestrator.retrack import list_versions, version_differences
+
+    versions, version_rows = list_versions(session), []
     per_object: dict[str, RunData] = {}
     run_views = []
     notes = []
@@ -472,6 +475,11 @@ def build_report(
             track_offline(run, config, lambda i, d=done, f=frames, lbl=run.label: progress.update(
                 f"{_bar(d, len(files))} | {lbl}: tracking offline, frame {i}/{f}"))
         done += len(run.episodes)
+        if versions:  # keypoint versions made by `trackdeform retrack`, against this run's keypoints and each other
+            diff = version_differences(session, run.episodes, run.frame_numbers, run.keypoints)["rows"]
+            version_rows.append({"run": run.label, "source": run.source, "cells": [
+                (f"{_fmt(d['vs_live_mm'], 3)} ({d['vs_live_frames']})", f"{_fmt(d['vs_previous_mm'], 3)} "
+                 f"({d['vs_previous_frames']})") for d in diff]})
         view: dict[str, Any] = {"label": run.label, "episodes": len(run.episodes), "frames": run.frames,
                                 "tracked": len(run.t), "source": run.source, "statuses": run.statuses,
                                 "plot": None, "thumbs": []}
@@ -519,7 +527,8 @@ def build_report(
     html = env.get_template("report.html.j2").render(
         session=str(session.resolve()), generated=time.strftime("%Y-%m-%d %H:%M:%S"),
         quality=quality_rows(runs), collection=collection_summary(session, runs, active), runs=run_views,
-        trajectories=trajectories, notes=notes, seconds=f"{time.monotonic() - t_start:.1f}",
+        trajectories=trajectories, notes=notes, versions=versions, version_rows=version_rows,
+        seconds=f"{time.monotonic() - t_start:.1f}",
     )
     page = out / "report.html"
     page.write_text(html, encoding="utf-8")
