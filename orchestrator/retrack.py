@@ -411,8 +411,8 @@ class _RayBackend:
 
 @dataclass
 class RetrackSummary:
-    """What a retrack did: runs tracked now, already done before, failed (label -> reason); frames tracked
-    now and their wall time (s, the whole command including start-up)."""
+    """What a retrack did: runs tracked now, already done before, failed (label -> reason); frames tracked now,
+    wall time s (the whole call, and from the first task submitted to the last result), the tasks' CPU s."""
 
     folder: Path
     version: str
@@ -425,6 +425,7 @@ class RetrackSummary:
     frames: int
     wall_s: float
     tracking_s: float
+    cpu_s: float = 0.0
 
 
 def _bar(done: int, total: int, width: int = 24) -> str:
@@ -492,6 +493,7 @@ def retrack(
                     files = write_result(folder, task, result)
                     summary.tracked += 1
                     summary.frames += result["frames"]
+                    summary.cpu_s += result["cpu_s"]
                     finished_frames += task.frames or result["frames"]
                     record.update(outcome="done", files=files, frames=result["frames"], metrics=result["metrics"],
                                   wall_s=round(result["wall_s"], 3), cpu_s=round(result["cpu_s"], 3))
@@ -604,6 +606,7 @@ def cmd_retrack(args: argparse.Namespace) -> int:
     figures = {"version": s.version, "folder": str(s.folder), "backend": s.backend, "workers": s.workers,
                "runs": s.runs, "tracked": s.tracked, "already_done": s.already_done, "failed": s.failed,
                "frames": s.frames, "tracking_s": round(s.tracking_s, 2), "wall_s": round(s.wall_s, 2),
+               "cpu_s": round(s.cpu_s, 2),
                "frames_per_s": round(fps, 2)}
     if args.json:
         print(json.dumps(figures))
