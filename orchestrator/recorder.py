@@ -34,6 +34,7 @@ from tdcommon.types import RGBDFrame
 from tdcommon.wire import ground_truth_to_json
 from tdrecord.channels import SCHEMAS, keypoints_record
 from tdrecord.codecs import SCHEMA_COMPRESSED, SCHEMA_RAW, SCHEMA_VIDEO, ColorEncoder, DepthEncoder, EncodedImage
+from tdrecord.digest import DigestWriter
 from tdrecord.episodes import ACTIVE_SUFFIX
 
 log = logging.getLogger(__name__)
@@ -81,6 +82,7 @@ class EpisodeWriter:
         self._w.start(profile="", library="trackdeform3d")
         self._channels: dict[str, int] = {}
         self._seq: dict[str, int] = {}
+        self._digest = DigestWriter()  # the small JSON channels, written beside the file once it is final
         self.camera_id = camera_id
         self.n_frames = 0
         self._last_tf = -np.inf
@@ -136,6 +138,7 @@ class EpisodeWriter:
         except ValueError:  # NaN / inf are not JSON (Foxglove's JSON.parse refuses them): null instead
             text = json.dumps(_finite_or_null(obj), separators=(",", ":"), allow_nan=False)
         self._add(topic, text.encode(), t)
+        self._digest.add(topic, _ns(t), text)
 
     def _image_message(self, img: EncodedImage, ts: Any) -> bytes:
         cls = self._image_cls[img.schema]
@@ -251,6 +254,10 @@ class EpisodeWriter:
         os.fsync(self._file.fileno())
         self._file.close()
         os.replace(self.active_path, self.path)
+        try:  # the digest only speeds up readers (the report): an episode never fails for it
+            self._digest.write(self.path, self.n_frames)
+        except OSError as e:
+            log.warning("%s: could not write its digest (%s); readers will read the episode file", self.path, e)
         fsync_dir(self.path.parent)
         self.closed = True
         return self.path

@@ -14,11 +14,12 @@ Episodes are streamed: one episode file is read at a time and only per-frame sca
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import math
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -66,7 +67,8 @@ class RunData:
     frame_numbers: list[int] = field(default_factory=list)
     edges: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
     statuses: dict[str, int] = field(default_factory=dict)
-    log_times: dict[int, tuple[Path, int]] = field(default_factory=dict)  # frame number -> (file, frame_info log ns)
+    # frame number -> (file, its frame_info log ns, log ns of the colour keyframe it decodes from)
+    log_times: dict[int, tuple[Path, int, int]] = field(default_factory=dict)
     incomplete: int = 0
     faults: int = 0
     bytes: int = 0
@@ -131,33 +133,48 @@ def _gt_error(kp: np.ndarray, gt: dict[str, Any]) -> float:
     return surface_error_mm(kp, g.centreline, g.radius, polyline=g.category != "cloth")
 
 
-def read_recorded(run: RunData) -> None:
-    """Fill ``run`` from its episodes' ``/keypoints`` (and ``/ground_truth/keypoints``), one file at a time."""
+def _small_channels(path: Path) -> Iterator[tuple[str, int, dict[str, Any]]]:
+    """(topic, log time ns, JSON) of an episode's frame info, ``/keypoints`` and ground truth: from its digest
+    (``tdrecord.digest``, no image chunk decompressed) when it has one, else from the MCAP file."""
     from mcap.reader import make_reader
 
+    from tdrecord.digest import read_digest
+
+    digest = read_digest(path)
+    if digest is not None:
+        yield from digest
+        return
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        topics = {c.topic for c in summary.channels.values()} if summary else set()
+        _, info = _camera_topics(topics)
+        for _, channel, msg in reader.iter_messages(
+            topics=[t for t in (info, "/keypoints", "/ground_truth/keypoints") if t in topics]
+        ):
+            yield channel.topic, int(msg.log_time), json.loads(msg.data)
+
+
+def read_recorded(run: RunData) -> None:
+    """Fill ``run`` from its episodes' ``/keypoints`` (and ``/ground_truth/keypoints``), one file at a time."""
     t0: float | None = None
     for path in run.episodes:
-        with open(path, "rb") as f:
-            reader = make_reader(f)
-            summary = reader.get_summary()
-            topics = {c.topic for c in summary.channels.values()} if summary else set()
-            color, info = _camera_topics(topics)
-            kps: dict[int, dict[str, Any]] = {}
-            gts: dict[int, dict[str, Any]] = {}
-            for _, channel, msg in reader.iter_messages(
-                topics=[t for t in (info, "/keypoints", "/ground_truth/keypoints") if t in topics]
-            ):
-                d = json.loads(msg.data)
-                fn = int(d.get("frame_number", -1))
-                if channel.topic == info:
-                    run.frames += 1
-                    run.log_times[fn] = (path, int(msg.log_time))
-                    if t0 is None:
-                        t0 = float(d.get("device_stamp", msg.log_time * 1e-9))
-                elif channel.topic == "/keypoints":
-                    kps[fn] = d
-                else:
-                    gts[fn] = d
+        kps: dict[int, dict[str, Any]] = {}
+        gts: dict[int, dict[str, Any]] = {}
+        key = -1
+        for topic, log_time, d in _small_channels(path):
+            fn = int(d.get("frame_number", -1))
+            if topic.endswith("/frame_info"):
+                run.frames += 1
+                if d.get("color_keyframe", True) or key < 0:
+                    key = log_time
+                run.log_times[fn] = (path, log_time, key)
+                if t0 is None:
+                    t0 = float(d.get("device_stamp", log_time * 1e-9))
+            elif topic == "/keypoints":
+                kps[fn] = d
+            else:
+                gts[fn] = d
         for fn in sorted(kps):
             d = kps[fn]
             status = str(d.get("status", ""))
@@ -216,6 +233,35 @@ def track_offline(run: RunData, config: Any, tick: Callable[[int], None] | None 
         run.frame_numbers.append(frame.frame_number)
     if run.keypoints:
         run.source = "offline"
+
+
+def read_color_at(path: Path, log_time: int, key_time: int) -> np.ndarray | None:
+    """The colour image (H, W, 3) uint8 RGB logged at ``log_time`` ns, decoded from the keyframe logged at
+    ``key_time``: only the chunks between the two are read. None when it is not there (then ``read_color``)."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from tdrecord.codecs import ImageDecoder
+
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        topics = {c.topic for c in summary.channels.values()} if summary else set()
+        color, _ = _camera_topics(topics)
+        factory, decoders, images = DecoderFactory(), {}, ImageDecoder(f"{path} {color}")
+        # mcap >= 1.3 names the bounds starting_at / ending_before (start_time / end_time are deprecated)
+        new = "starting_at" in inspect.signature(reader.iter_messages).parameters
+        bounds = ({"starting_at": key_time, "ending_before": log_time + 1} if new
+                  else {"start_time": key_time, "end_time": log_time + 1})
+        for schema, channel, msg in reader.iter_messages(topics=[color], **bounds):
+            if schema is None or msg.log_time < key_time:
+                continue
+            dec = decoders.get(schema.id) or decoders.setdefault(
+                schema.id, factory.decoder_for(channel.message_encoding, schema))
+            img = images.decode(schema.name, dec(msg.data))
+            if msg.log_time == log_time:
+                return img
+    return None
 
 
 def read_color(path: Path, frame_number: int) -> np.ndarray:
@@ -510,9 +556,10 @@ def build_report(
                 fn = run.frame_numbers[k]
                 if fn not in run.log_times:
                     continue
-                path, _ = run.log_times[fn]
-                img = draw_thumbnail(read_color(path, fn), run.keypoints[k], run.edges, cal.K, cal.T_world_cam,
-                                     THUMB_WIDTH)
+                path, log_time, key_time = run.log_times[fn]
+                color = read_color_at(path, log_time, key_time)
+                img = draw_thumbnail(color if color is not None else read_color(path, fn), run.keypoints[k],
+                                     run.edges, cal.K, cal.T_world_cam, THUMB_WIDTH)
                 tname = f"run{n:03d}_frame{fn}.png"
                 cv2.imwrite(str(out / IMAGES / tname), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
                 view["thumbs"].append({"src": f"{IMAGES}/{tname}", "caption": f"frame {fn}, t = {run.t[k]:.1f} s"})
