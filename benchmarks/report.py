@@ -54,6 +54,8 @@ def main() -> None:
     aside.mkdir()
     cases = [("as recorded, digests", False, False)] if digests else []
     cases += [("as recorded, MCAP only", False, True), ("with --track-missing", True, False)]
+    # warm-up (imports, matplotlib's font cache, page cache of the files): not counted
+    build_report(session, tmp / "report_warmup", progress=Progress(enabled=False))
     for label, track, hide in cases:
         if hide:  # the episodes' small channels read from the MCAP files (every chunk decompressed)
             for p in digests:

@@ -551,7 +551,7 @@ def build_report(
             from tdrecord import read_calibration
 
             cal = read_calibration(run.episodes[0])
-            picks = np.unique(np.linspace(0, len(run.t) - 1, max(1, thumbnails)).round().astype(int))
+            picks = _thumbnail_frames(run, thumbnails)
             for k in picks:
                 fn = run.frame_numbers[k]
                 if fn not in run.log_times:
@@ -582,6 +582,22 @@ def build_report(
     progress.update(f"{_bar(done, len(files))} | done in {time.monotonic() - t_start:.1f} s", force=True)
     progress.done()
     return page
+
+
+def _thumbnail_frames(run: RunData, count: int, max_shift: int = 15) -> list[int]:
+    """Indices into the run's tracked frames of ``count`` thumbnails spread over the run; each is moved to the
+    nearest tracked colour keyframe at most ``max_shift`` tracked frames (and half the spacing) away, unless
+    another thumbnail took it: a keyframe decodes alone (no earlier frame decoded, ~3x faster for H.264)."""
+    want = np.unique(np.linspace(0, len(run.t) - 1, max(1, count)).round().astype(int)).tolist()
+    max_shift = min(max_shift, (len(run.t) - 1) // max(1, 2 * (count - 1)))  # keep them spread over the run
+    keys = np.array([k for k, fn in enumerate(run.frame_numbers)
+                     if fn in run.log_times and run.log_times[fn][1] == run.log_times[fn][2]], dtype=int)
+    picks: list[int] = []
+    for k in want:
+        near = keys[np.argsort(np.abs(keys - k), kind="stable")] if len(keys) else keys
+        moved = next((int(j) for j in near if abs(int(j) - k) <= max_shift and int(j) not in picks), None)
+        picks.append(moved if moved is not None and k not in picks else k)
+    return sorted(set(picks))
 
 
 def _safe(name: str) -> str:

@@ -451,6 +451,11 @@ def retrack(
     name = version or default_version_name(software)
     tracking = config.tracking.model_dump(mode="json")
     tasks = session_runs(session, config.tracking)
+    from tdrecord import ACTIVE_SUFFIX
+
+    for a in sorted(session.glob(f"*{ACTIVE_SUFFIX}")):
+        print(f"warning: {a.name}: unfinished episode skipped (run `trackdeform recover {session}` first)",
+              file=sys.stderr)
     folder = open_version(session, name, tracking, software)
     journal = folder / JOURNAL_FILE
     todo = [t for t in tasks if not run_done(folder, t)]

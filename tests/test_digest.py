@@ -69,3 +69,16 @@ def test_a_thumbnail_decodes_from_its_keyframe_only(tmp_path: Path) -> None:
         assert key_time <= log_time
         np.testing.assert_array_equal(read_color_at(path, log_time, key_time), read_color(path, fn))
     assert read_color_at(path, log_time + 1, key_time) is None  # no frame logged then
+
+
+def test_thumbnails_move_to_nearby_keyframes_and_stay_spread() -> None:
+    from orchestrator.report import RunData, _thumbnail_frames
+
+    r = RunData(key=(), object="o", category="dlo", program="p", speed="s", repeat=0, attempt=1, plan_pass=0,
+                episodes=[])
+    r.t, r.frame_numbers = list(range(300)), list(range(300))
+    r.log_times = {n: (Path("e.mcap"), n, n - n % 30) for n in range(300)}  # a keyframe every 30 frames
+    assert _thumbnail_frames(r, 4) == [0, 90, 210, 299]  # 100 -> 90, 199 -> 210; 299 is 29 from 270: stays
+    r.t, r.frame_numbers = r.t[:23], r.frame_numbers[:23]
+    r.log_times = {n: (Path("e.mcap"), n, 17 if n >= 17 else 0) for n in range(23)}
+    assert _thumbnail_frames(r, 4) == [0, 7, 17, 22]  # 15 -> 17 (half the spacing), 7 stays: no keyframe near

@@ -218,3 +218,25 @@ def test_mean_distance_over_common_frames() -> None:
     X = np.zeros((3, 3))
     assert mean_distance_mm({1: X, 2: X}, {2: X + [0.003, 0, 0], 5: X}) == pytest.approx((3.0, 1))
     assert mean_distance_mm({1: X}, {1: np.zeros((4, 3))})[1] == 0  # another keypoint count is not compared
+
+
+def test_a_run_that_never_initialises_is_reported_failed(tmp_path: Path) -> None:
+    """A static scene (nothing moves, so nothing is segmented): the run fails with the tracker's reason, the
+    journal says so, no result file is written, and the exit code is 1."""
+    from tests.test_report import _session
+
+    session = tmp_path / "s"
+    session.mkdir()
+    _session(session)
+    (session / "episode_000002.mcap.active").write_bytes(b"")
+    r = _cli("retrack", str(session), "--workers", "1", "--version", "v", "--json", timeout=300)
+    assert r.returncode == 1, r.stderr[-3000:]
+    figures = json.loads(r.stdout)
+    assert figures["tracked"] == 0 and len(figures["failed"]) == 1
+    assert "never initialised" in next(iter(figures["failed"].values()))
+    assert "episode_000002.mcap.active: unfinished episode skipped" in r.stderr
+    folder = session / "keypoints" / "v"
+    assert not list(folder.glob("*.npz")) and not list(folder.glob("*.tmp"))
+    runs = [x for x in read_progress_journal(folder / JOURNAL_FILE) if x["type"] == "run"]
+    assert [x["outcome"] for x in runs] == ["failed"] and "never initialised" in runs[0]["reason"]
+    assert _cli("retrack", str(tmp_path / "nothing")).returncode == 2
