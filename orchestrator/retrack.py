@@ -315,6 +315,13 @@ def _thread_env(workers: int) -> dict[str, str]:
     return {k: os.environ.get(k, n) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 
 
+def _ignore_sigint() -> None:
+    """In worker and manager processes: Ctrl-C is the parent's to handle (it ends them)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 class _LocalBackend:
     """Worker processes (spawn context): one task per run, progress through a manager queue."""
 
@@ -323,12 +330,14 @@ class _LocalBackend:
     def __init__(self, workers: int) -> None:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
+        from multiprocessing.managers import SyncManager
 
         ctx = multiprocessing.get_context("spawn")
         os.environ.update(_thread_env(workers))  # inherited by the spawned workers
-        self.manager = ctx.Manager()
+        self.manager = SyncManager(ctx=ctx)
+        self.manager.start(_ignore_sigint)  # Ctrl-C reaches the whole process group: only this process acts on it
         self.queue = self.manager.Queue()
-        self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
+        self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_ignore_sigint)
         self.workers = workers
 
     def submit(self, task: RunTask) -> Any:
@@ -351,7 +360,13 @@ class _LocalBackend:
                 return items
 
     def close(self, cancel: bool = False) -> None:
+        """Wait for the workers; with ``cancel`` (Ctrl-C) drop the queued runs and end the running ones."""
+        procs = list((getattr(self.pool, "_processes", None) or {}).values()) if cancel else []
         self.pool.shutdown(wait=not cancel, cancel_futures=cancel)
+        for p in procs:  # the pool's own worker processes (its runs are tracked again on the next retrack)
+            p.terminate()
+        for p in procs:
+            p.join(10)
         self.manager.shutdown()
 
 
