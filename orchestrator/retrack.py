@@ -96,7 +96,7 @@ def session_runs(session: Path, tracking: Any) -> list[RunTask]:
         category = meta.get("category")
         label = (f"{meta.get('object', '?')} · {meta.get('program', '?')} · {meta.get('speed', '?')} · "
                  f"#{int(meta.get('repeat', 0) or 0) + 1} (pass {meta.get('plan_pass', 0)}, "
-                 f"attempt {meta.get('attempt', 1)})")
+                 f"attempt {meta.get('attempt', 1)}, from {members[0][0].stem})")
         tasks.append(RunTask(
             index=i, label=label, episodes=tuple(str(f) for f, _ in members), category=category,
             params=tracking_params(tracking, category, meta.get("n_keypoints")),
@@ -403,10 +403,10 @@ class _RayBackend:
         for ref in ready:
             try:
                 out.append((ref, self.ray.get(ref), None))
-            except self.ray.exceptions.RayTaskError as e:
-                cause = e.as_instanceof_cause() if hasattr(e, "as_instanceof_cause") else e
-                out.append((ref, None, getattr(e, "cause", None) or cause))
-            except self.ray.exceptions.RayError as e:
+            except self.ray.exceptions.RayTaskError as e:  # the task raised: report its own exception
+                cause = getattr(e, "cause", None)
+                out.append((ref, None, cause if isinstance(cause, BaseException) else e))
+            except self.ray.exceptions.RayError as e:  # the worker died, the task was cancelled, ...
                 out.append((ref, None, e))
         return out
 
