@@ -1,4 +1,4 @@
-"""The ``trackdeform`` command line: demo, run, validate, program, worker, watch, track, inspect, report, eval."""
+"""The ``trackdeform`` command line: demo, run, validate, program, worker, watch, track, inspect, report, eval, retrack."""
 
 from __future__ import annotations
 
