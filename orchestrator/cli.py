@@ -1,4 +1,5 @@
-"""The ``trackdeform`` command line: demo, run, validate, program, worker, watch, track, inspect, report, eval, retrack."""
+"""The ``trackdeform`` command line: demo, run, validate, program, worker, watch, track, inspect, report, eval,
+retrack."""
 
 from __future__ import annotations
 
