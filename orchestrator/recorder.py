@@ -34,7 +34,7 @@ from tdcommon.types import RGBDFrame
 from tdcommon.wire import ground_truth_to_json
 from tdrecord.channels import SCHEMAS, keypoints_record
 from tdrecord.codecs import SCHEMA_COMPRESSED, SCHEMA_RAW, SCHEMA_VIDEO, ColorEncoder, DepthEncoder, EncodedImage
-from tdrecord.digest import DigestWriter
+from tdrecord.digest import DigestWriter, digest_path
 from tdrecord.episodes import ACTIVE_SUFFIX
 
 log = logging.getLogger(__name__)
@@ -77,6 +77,7 @@ class EpisodeWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         if self.path.exists():
             raise FileExistsError(f"{self.path} exists already; refusing to overwrite a finished episode")
+        digest_path(self.path).unlink(missing_ok=True)  # a stale digest of a deleted episode of this name
         self._file = open(self.active_path, "wb")  # noqa: SIM115 - closed in close()/abort()
         self._w = Writer(self._file, compression=_COMPRESSION[compression], chunk_size=4 << 20)
         self._w.start(profile="", library="trackdeform3d")

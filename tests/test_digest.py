@@ -82,3 +82,18 @@ def test_thumbnails_move_to_nearby_keyframes_and_stay_spread() -> None:
     r.t, r.frame_numbers = r.t[:23], r.frame_numbers[:23]
     r.log_times = {n: (Path("e.mcap"), n, 17 if n >= 17 else 0) for n in range(23)}
     assert _thumbnail_frames(r, 4) == [0, 7, 17, 22]  # 15 -> 17 (half the spacing), 7 stays: no keyframe near
+
+
+def test_a_new_episode_of_the_same_name_drops_a_stale_digest(tmp_path: Path) -> None:
+    from orchestrator.recorder import EpisodeWriter
+    from tests.conftest import make_frame
+
+    path = tmp_path / "episode_000000.mcap"
+    w = EpisodeWriter(path, "cam0")
+    w.write_frame(make_frame(0), np.eye(4))
+    w.close({})
+    assert read_digest(path) is not None
+    path.unlink()  # deleted by hand; the name is recorded again
+    w = EpisodeWriter(path, "cam0")
+    assert not digest_path(path).exists()
+    w.abort()
