@@ -85,8 +85,7 @@ def main() -> None:
                 mean = (sum(figures[(backend, n)]) / len(figures[(backend, n)])) / (sum(base) / len(base))
                 print(f"{backend}: {n} workers / {counts[0]}: {mean:.2f}x (mean of {len(base)}), "
                       f"{best:.2f}x (best of each)")
-    if not a.session:
-        shutil.rmtree(tmp)
+    shutil.rmtree(tmp)
 
 
 if __name__ == "__main__":
