@@ -240,3 +240,12 @@ def test_a_run_that_never_initialises_is_reported_failed(tmp_path: Path) -> None
     runs = [x for x in read_progress_journal(folder / JOURNAL_FILE) if x["type"] == "run"]
     assert [x["outcome"] for x in runs] == ["failed"] and "never initialised" in runs[0]["reason"]
     assert _cli("retrack", str(tmp_path / "nothing")).returncode == 2
+
+
+def test_ray_address_without_ray_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
+    from orchestrator.retrack import _RayBackend
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # as if not installed
+    monkeypatch.setitem(sys.modules, "ray.util.queue", None)
+    with pytest.raises(RetrackError, match=r"trackdeform3d\[cluster\]"):
+        _RayBackend("local", 1)
