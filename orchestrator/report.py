@@ -310,27 +310,57 @@ def draw_thumbnail(color: np.ndarray, X: np.ndarray, edges: np.ndarray, K: np.nd
     return img
 
 
-def plot_run(run: RunData, path: Path) -> None:
-    """Fig. 5: edge-length error (Abs) and Chamfer distance (and the GT error in mock mode) against time."""
-    import matplotlib.pyplot as plt
+class Fig5:
+    """Fig. 5: edge-length error (Abs) and Chamfer distance (and the GT error in mock mode) against time.
 
-    t = np.asarray(run.t)
-    gt = np.asarray(run.gt_mm)
-    fig, axes = plt.subplots(2, 1, figsize=(7.0, 3.8), sharex=True, constrained_layout=True)
-    axes[0].plot(t, run.abs_mm, lw=1.0, color="tab:blue", label="Abs (edge-length RMSE)")
-    if np.isfinite(gt).any():
-        axes[0].plot(t, gt, lw=1.0, color="tab:green", label="GT error")
-    axes[0].axhline(5.0, color="grey", lw=0.6, ls="--")
-    axes[0].set_ylabel("mm")
-    axes[0].legend(loc="upper right", fontsize=7)
-    axes[1].plot(t, run.cd_mm, lw=1.0, color="tab:orange", label="CD (Chamfer distance)")
-    axes[1].axhline(10.0, color="grey", lw=0.6, ls="--")
-    axes[1].set_ylabel("mm")
-    axes[1].set_xlabel("time in run, s")
-    axes[1].legend(loc="upper right", fontsize=7)
-    fig.suptitle(run.label, fontsize=9)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    One figure drawn again for every run (its lines get the run's data): building a matplotlib figure per
+    run cost as much as drawing it twice (0.14 s CPU a run against 0.07).
+    """
+
+    def __init__(self) -> None:
+        import matplotlib.pyplot as plt
+
+        self.fig, self.axes = plt.subplots(2, 1, figsize=(7.0, 3.8), sharex=True, constrained_layout=True)
+        ax0, ax1 = self.axes
+        (self.abs_line,) = ax0.plot([], [], lw=1.0, color="tab:blue", label="Abs (edge-length RMSE)")
+        (self.gt_line,) = ax0.plot([], [], lw=1.0, color="tab:green", label="GT error")
+        (self.cd_line,) = ax1.plot([], [], lw=1.0, color="tab:orange", label="CD (Chamfer distance)")
+        ax0.axhline(5.0, color="grey", lw=0.6, ls="--")
+        ax0.set_ylabel("mm")
+        ax1.axhline(10.0, color="grey", lw=0.6, ls="--")
+        ax1.set_ylabel("mm")
+        ax1.set_xlabel("time in run, s")
+        ax1.legend(handles=[self.cd_line], loc="upper right", fontsize=7)
+
+    def save(self, run: RunData, path: Path) -> None:
+        """Draw ``run`` and write the PNG to ``path``."""
+        t = np.asarray(run.t)
+        gt = np.asarray(run.gt_mm)
+        has_gt = bool(np.isfinite(gt).any())
+        self.abs_line.set_data(t, run.abs_mm)
+        self.gt_line.set_data(t if has_gt else [], gt if has_gt else [])
+        self.cd_line.set_data(t, run.cd_mm)
+        ax0, ax1 = self.axes
+        ax0.legend(handles=[self.abs_line] + ([self.gt_line] if has_gt else []), loc="upper right", fontsize=7)
+        for ax in self.axes:
+            ax.relim()
+            ax.autoscale_view()
+        self.fig.suptitle(run.label, fontsize=9)
+        self.fig.savefig(path, dpi=90)
+
+    def close(self) -> None:
+        import matplotlib.pyplot as plt
+
+        plt.close(self.fig)
+
+
+def plot_run(run: RunData, path: Path) -> None:
+    """Fig. 5 of one run as a PNG (``Fig5`` draws many runs on one figure)."""
+    fig = Fig5()
+    try:
+        fig.save(run, path)
+    finally:
+        fig.close()
 
 
 def plot_trajectory(run: RunData, path: Path, max_samples: int = 120) -> None:
@@ -506,6 +536,7 @@ def build_report(
     from orchestrator.retrack import list_versions, version_differences
 
     versions, version_rows = list_versions(session), []
+    fig5: Fig5 | None = None
     per_object: dict[str, RunData] = {}
     run_views = []
     notes = []
@@ -542,7 +573,8 @@ def build_report(
             view.update({k: _fmt(v, 1 if k.endswith("10") or k.endswith("5") else 2) for k, v in m.items()})
             view["GT"] = _fmt(float(np.sqrt(np.mean(g**2)))) if len(g) else "–"
             name = f"run{n:03d}_metrics.png"
-            plot_run(run, out / IMAGES / name)
+            fig5 = fig5 or Fig5()
+            fig5.save(run, out / IMAGES / name)
             view["plot"] = f"{IMAGES}/{name}"
             if run.object not in per_object:
                 per_object[run.object] = run
@@ -566,6 +598,8 @@ def build_report(
         run_views.append(view)
         if run is not per_object.get(run.object):  # keep only what the page still needs
             run.keypoints, run.frame_numbers, run.log_times = [], [], {}
+    if fig5 is not None:
+        fig5.close()
     progress.update(f"{_bar(done, len(files))} | writing the page", force=True)
     trajectories = [{"object": o, "src": f"{IMAGES}/trajectory_{_safe(o)}.png", "run": r.label}
                     for o, r in per_object.items()]
