@@ -54,7 +54,7 @@ $(STAMP): pyproject.toml | system-deps
 	  { echo "error: Python >= 3.10 is needed ($(PYTHON) is $$($(PYTHON) --version))" >&2; exit 1; }
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[dev,franka,ur,realsense,oak]'
+	$(BIN)/python -m pip install -q -e '.[dev,franka,ur,realsense,oak,cluster]'
 	touch $(STAMP)
 
 clean:

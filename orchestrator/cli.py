@@ -1,4 +1,5 @@
-"""The ``trackdeform`` command line: demo, run, validate, program, worker, watch, track, inspect, report, eval."""
+"""The ``trackdeform`` command line: demo, run, validate, program, worker, watch, track, inspect, report, eval,
+retrack."""
 
 from __future__ import annotations
 
@@ -324,7 +325,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     for module in ("orchestrator.cli_program", "orchestrator.cli_tracking", "orchestrator.cli_devices",
                    "orchestrator.cli_live", "orchestrator.report", "orchestrator.cli_eval", "orchestrator.export",
-                   "orchestrator.cli_router"):
+                   "orchestrator.cli_router", "orchestrator.retrack"):
         try:
             mod = __import__(module, fromlist=["register"])
         except ModuleNotFoundError as e:

@@ -10,6 +10,7 @@ import threading
 import time
 import zipfile
 import zlib
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -101,12 +102,14 @@ def _arm_geometry(seq: Any, i: int, arms: Any) -> tuple[Any, Any, Any, Any]:
     return None, None, None, None
 
 
-def track_sequence(seq: Any, params: Any, kind: str | None, progress: bool = True) -> dict[str, Any]:
+def track_sequence(
+    seq: Any, params: Any, kind: str | None, progress: bool = True, on_frame: Callable[[int], None] | None = None
+) -> dict[str, Any]:
     """Run the pipeline over every frame, then fill the frames left without keypoints (before initialisation,
     after a loss) by tracking from their tracked neighbour (``tracking.offline.fill_missing``); returns raw
-    keypoints (T, N, 3) m (NaN only where no frame was ever tracked), topology, metrics and grasp (T entries:
-    (G,) int64 keypoint held per gripper, or None). The frames without
-    keypoints are kept in memory for the second pass (their uint16 depth, ~2 MB each at 1280x720)."""
+    keypoints (T, N, 3) m (NaN only where no frame was ever tracked), grasp indices (T entries (G,) int64
+    or None), topology, metrics. The frames without keypoints are kept in memory for the second pass (their
+    uint16 depth, ~2 MB each at 1280x720). on_frame(i) is called after the forward pass's frame i."""
     from orchestrator.worker import ArmModel
     from tracking.metrics import sequence_summary, surface_error_mm
     from tracking.offline import FrameInput, fill_missing
@@ -141,6 +144,8 @@ def track_sequence(seq: Any, params: Any, kind: str | None, progress: bool = Tru
             gt = frame.ground_truth
             if gt is not None and len(gt.centreline):
                 gt_mm.append(surface_error_mm(out.keypoints, gt.centreline, gt.radius, polyline=gt.category != "cloth"))
+        if on_frame is not None:
+            on_frame(i)
         if progress and (i % 30 == 0 or i == T - 1):
             print(f"\rtracking frame {i + 1}/{T}  {out.status:9s} {np.mean(ms[-30:]):6.1f} ms/frame", end="",
                   file=sys.stderr, flush=True)
@@ -171,7 +176,7 @@ def track_sequence(seq: Any, params: Any, kind: str | None, progress: bool = Tru
     metrics["statuses"] = {s: statuses.count(s) for s in sorted(set(statuses))}
     if gt_mm:
         metrics["gt_rmse_mm"] = float(np.sqrt(np.mean(np.square(gt_mm))))
-    return {"raw": full, "topology": topology, "metrics": metrics, "grasp": grasp}
+    return {"raw": full, "grasp": grasp, "topology": topology, "metrics": metrics}
 
 
 def cmd_track(args: argparse.Namespace) -> int:

@@ -44,6 +44,7 @@ from tdcommon.types import RGBDFrame
 from tdcommon.wire import ground_truth_to_json
 from tdrecord.channels import SCHEMAS, keypoints_record
 from tdrecord.codecs import SCHEMA_COMPRESSED, SCHEMA_RAW, SCHEMA_VIDEO, ColorEncoder, DepthEncoder, EncodedImage
+from tdrecord.digest import DigestWriter, digest_path
 from tdrecord.episodes import ACTIVE_SUFFIX, CLOSE_METADATA, OPEN_METADATA
 
 log = logging.getLogger(__name__)
@@ -89,6 +90,7 @@ class EpisodeWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         if self.path.exists():
             raise FileExistsError(f"{self.path} exists already; refusing to overwrite a finished episode")
+        digest_path(self.path).unlink(missing_ok=True)  # a stale digest of a deleted episode of this name
         self._file = open(self.active_path, "wb")  # noqa: SIM115 - closed in close()/abort()
         self.closed = False
         self.failed: str | None = None  # why close() failed; a failed writer never reports its path as finished
@@ -118,6 +120,7 @@ class EpisodeWriter:
             self._w.add_metadata(OPEN_METADATA, _json_values(metadata))
         self._channels: dict[str, int] = {}
         self._seq: dict[str, int] = {}
+        self._digest = DigestWriter()  # the small JSON channels, written beside the file once it is final
         self.camera_id = camera_id
         self.n_frames = 0
         self._last_tf = -np.inf
@@ -172,6 +175,7 @@ class EpisodeWriter:
         except ValueError:  # NaN / inf are not JSON (Foxglove's JSON.parse refuses them): null instead
             text = json.dumps(_finite_or_null(obj), separators=(",", ":"), allow_nan=False)
         self._add(topic, text.encode(), t)
+        self._digest.add(topic, _ns(t), text)
 
     def _image_message(self, img: EncodedImage, ts: Any) -> bytes:
         cls = self._image_cls[img.schema]
@@ -303,6 +307,10 @@ class EpisodeWriter:
             self.failed = f"{self.path.name}: could not be finished ({type(e).__name__}: {e}); left as .active"
             self.abort()
             raise RecordingFailed(self.failed) from e
+        try:  # the digest only speeds up readers (the report): an episode never fails for it
+            self._digest.write(self.path, self.n_frames)
+        except OSError as e:
+            log.warning("%s: could not write its digest (%s); readers will read the episode file", self.path, e)
         self.closed = True
         return self.path
 
