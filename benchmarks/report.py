@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import resource
-import socket
 import subprocess
 import sys
 import tempfile
@@ -23,15 +22,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from orchestrator.bus import free_port  # noqa: E402
 from orchestrator.progress import Progress  # noqa: E402
 from orchestrator.report import build_report  # noqa: E402
 from tdrecord.digest import DIGEST_SUFFIX  # noqa: E402
-
-
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def main() -> None:
@@ -43,7 +37,7 @@ def main() -> None:
     session = Path(a.session) if a.session else tmp / "session"
     if not a.session:
         subprocess.run([sys.executable, "-m", "orchestrator.cli", "demo", "--sim-time", "--seconds", str(a.seconds),
-                        "--out", str(session), "--port", str(_port()), "--no-tracking"], check=True,
+                        "--out", str(session), "--port", str(free_port()), "--no-tracking"], check=True,
                        capture_output=True, cwd=Path(__file__).resolve().parent.parent)
     episodes = len(list(session.glob("episode_*.mcap")))
     size = sum(p.stat().st_size for p in session.glob("episode_*.mcap"))

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
@@ -24,15 +23,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from orchestrator.bus import free_port  # noqa: E402
 from orchestrator.config import DEFAULT_CONFIG, load_config  # noqa: E402
 from orchestrator.progress import Progress  # noqa: E402
 from orchestrator.retrack import VERSIONS_DIR, retrack, session_runs  # noqa: E402
-
-
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def main() -> None:
@@ -48,7 +42,7 @@ def main() -> None:
     session = Path(a.session) if a.session else tmp / "session"
     if not a.session:
         subprocess.run([sys.executable, "-m", "orchestrator.cli", "demo", "--sim-time", "--seconds", str(a.seconds),
-                        "--out", str(session), "--port", str(_port()), "--no-tracking"], check=True,
+                        "--out", str(session), "--port", str(free_port()), "--no-tracking"], check=True,
                        capture_output=True, cwd=repo)
     config = load_config(DEFAULT_CONFIG)
     runs = session_runs(session, config.tracking)

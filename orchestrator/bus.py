@@ -39,6 +39,16 @@ def zenoh_config(bus: BusConfig, *, listen: bool = True, connect: list[str] | No
     return c
 
 
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 the OS just handed out: tests and benchmarks listen there, so two runs at
+    the same time never share an endpoint."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def local_endpoints(endpoints: list[str]) -> list[str]:
     """Endpoints a process on this host can connect to (``0.0.0.0`` / ``[::]`` become loopback)."""
     return [e.replace("/0.0.0.0:", "/127.0.0.1:").replace("/[::]:", "/[::1]:") for e in endpoints]
