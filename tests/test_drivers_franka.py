@@ -215,9 +215,11 @@ def test_hand_state_errors_surface_and_recover(franky):
     hand.connect()
     g = franky.Gripper.instances[0]
     g.fail = True
-    time.sleep(0.05)
+    deadline = time.monotonic() + 5.0  # the hand's state thread sees the failure at its next poll
     with pytest.raises(DeviceError, match="GripperException"):
-        hand.read_state()
+        while time.monotonic() < deadline:
+            hand.read_state()
+            time.sleep(0.01)
     g.fail = False
     hand.recover()
     assert ("stop", (), {}) in g.calls
