@@ -282,7 +282,8 @@ def init_consistency(
     cfg0 = station_config(width, height)
     fps = cfg0.station.camera.fps
     k1 = int(round((settle_s + at_s) * fps))
-    times = [0.0] + [(k1 - j * reference_gap) / fps for j in (3, 2, 1)] + [k1 / fps]
+    # the pipeline's references: D0 and the recent frames every reference_gap before the initialisation frame
+    times = [0.0] + [(k1 - j * reference_gap) / fps for j in (3, 2, 1) if k1 - j * reference_gap > 0] + [k1 / fps]
     for seed in range(first_seed, first_seed + seeds):
         cfg = station_config(width, height, camera_seed=seed)
         obj = object_config(cfg, name, sim)
