@@ -12,9 +12,11 @@ from tracking.geometry import depth_to_points, project_points
 from tracking.params import TrackingParams
 from tracking.segmentation import (
     background_from_depths,
+    behind_near_object,
     render_arm_mask,
     segment_against_background,
     segment_by_difference,
+    unchanged_object_pixels,
     update_background,
 )
 
@@ -258,3 +260,33 @@ def test_refined_1d_cloud_regrows_its_unmoved_end_at_full_resolution(cam):
     assert grown[:, 0].max() > 0.15 - 0.005  # the end is reached
     d, _ = cKDTree(c).query(grown)
     assert (d < 0.007 + 0.004).all()  # rope only: none of the table around it
+
+
+def test_object_standing_still_in_the_references_is_not_background(cam):
+    """A rope that stood where it is in every reference: its pixels' background becomes unknown, so the
+    tracking segmentation finds it (near the tracked keypoints) instead of treating it as background; an
+    unknown pixel away from the object is learned from two frames."""
+    K, T = cam
+    rng = np.random.default_rng(4)
+    refs = np.stack([S.rope_scene(0.0, K, T, (H, W), rng).depth for _ in range(2)])
+    f1 = S.rope_scene(0.0, K, T, (H, W), rng)  # not moved yet (slow motion)
+    bg = background_from_depths(refs)
+    cloud, _ = depth_to_points(f1.depth, K, T, S.render_depth([tube_mesh(f1.centreline, f1.radius)], K, T, (H, W)) > 0)
+    kp = f1.centreline[::20]
+    old = segment_against_background(f1.depth, bg, K, T, P, None, kp)
+    assert len(old.points) == 0  # the rope is in the background
+    still = unchanged_object_pixels(f1.depth, bg, cloud, K, T, P)
+    rope_px = S.render_depth([tube_mesh(f1.centreline, f1.radius)], K, T, (H, W)) > 0
+    assert still[rope_px].mean() > 0.9
+    pts, _ = depth_to_points(f1.depth, K, T, still)
+    assert (cKDTree(f1.centreline).query(pts)[0] < f1.radius + 0.004).all()  # rope only, no table
+    bg[still] = 0.0
+    bg[:20, :20] = 0.0  # table pixels never seen (missing in every reference)
+    behind = behind_near_object(f1.depth, bg, P, cloud, K, T)
+    seg = segment_against_background(f1.depth, bg, K, T, P, None, kp, behind)
+    d, _ = cKDTree(f1.centreline).query(seg.points)
+    assert d.max() < f1.radius + 0.004
+    assert cKDTree(seg.points).query(f1.centreline)[0].max() < 0.01  # the whole rope
+    upd = update_background(bg, f1.depth, P, prev_depth=f1.depth, keep=behind)
+    assert (upd[:20, :20] > 0).all()  # learned: nothing tracked there
+    assert (upd[still] == 0).all()  # still unknown: the tracked object stands there

@@ -30,6 +30,7 @@ from tracking.segmentation import (
     segment_against_background,
     segment_by_difference,
     support_plane,
+    unchanged_object_pixels,
     update_background,
 )
 from tracking.tracker import Tracker, TrackStatus
@@ -297,6 +298,8 @@ class LivePipeline:
                 self.tracker.reset()
                 return self._empty("waiting", n, "waiting: the segmented object does not reach every closed gripper")
         bg = background_from_depths(refs)
+        # where the object stood still in every reference the background is unknown, not the object
+        bg[unchanged_object_pixels(depth, bg, seg.points, self.K_seg, self.T, self.seg_params)] = 0.0
         # the object's pixels behind the references (moving away) are object, not revealed background
         keep = behind_near_object(depth, bg, self.seg_params, seg.points, self.K_seg, self.T, arm)
         self.background = update_background(bg, depth, self.seg_params, arm, keep=keep)

@@ -555,12 +555,14 @@ def behind_near_object(
     T_world_cam: np.ndarray,
     arm_mask: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(H, W) bool: valid pixels significantly behind the background (m) whose 3D point lies within
+    """(H, W) bool: valid pixels significantly behind the background (m), or without a background
+    (0: unknown, e.g. where the object stood still in every reference), whose 3D point lies within
     ``background_object_gap_m`` of the tracked object (points (M, 3) m world, e.g. its densified
     keypoint edges): the object moved away from the camera behind a background that still holds
-    it from the reference frames. Such pixels are object, not revealed background."""
-    out = valid_depth(depth, params) & (background > 0)
-    out &= depth - background > change_threshold(background, params)
+    it from the reference frames, or is where nothing else was ever seen. Such pixels are object,
+    not revealed background."""
+    out = valid_depth(depth, params)
+    out &= (background <= 0) | (depth - background > change_threshold(background, params))
     if arm_mask is not None:
         out &= ~arm_mask
     if len(object_points) == 0 or not out.any():
@@ -589,6 +591,7 @@ def update_background(
     single noisy or flying reading then cannot push the background back (one-frame outliers would
     otherwise ratchet it farther frame after frame and the foreground would fill with noise).
     keep: (H, W) bool pixels not to update (``behind_near_object``: the object, not background).
+    A pixel without a background (0) takes the depth it has in both frames (``keep`` aside).
     """
     ok = valid_depth(depth, params)
     if arm_mask is not None:
@@ -598,10 +601,36 @@ def update_background(
     bg_ok = background > 0
     thr = change_threshold(background, params)
     revealed = ok & bg_ok & (depth - background > thr)
+    unknown = ok & ~bg_ok
     if prev_depth is not None:
         revealed &= prev_depth - background > thr
+        unknown &= valid_depth(prev_depth, params)
+    revealed |= unknown
     out = background.copy()
     out[revealed] = depth[revealed]
+    return out
+
+
+def unchanged_object_pixels(
+    depth: np.ndarray, background: np.ndarray, cloud: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray,
+    params: TrackingParams,
+) -> np.ndarray:
+    """(H, W) bool: pixels of the object cloud (N, 3) m world in depth (H, W) m (within a voxel's footprint of
+    its projection and ``voxel_m`` of it in 3D) where the background (H, W) m is within the change threshold
+    of the depth: the object stood there in every reference, so the background there is the object itself."""
+    H, W = depth.shape
+    on, zmed = pixel_mask(cloud, K, T_world_cam, (H, W))
+    r = max(1, int(np.ceil(params.voxel_m * float(K[0, 0]) / zmed)))
+    near = cv2.dilate(on.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2))
+    cand = near.astype(bool) & valid_depth(depth, params) & (background > 0)
+    cand &= np.abs(depth - background) <= change_threshold(background, params)
+    out = np.zeros((H, W), bool)
+    if len(cloud) == 0 or not cand.any():
+        return out
+    pts, rc = depth_to_points(depth, K, T_world_cam, cand)
+    d, _ = cKDTree(cloud).query(pts, distance_upper_bound=params.voxel_m)
+    hit = np.isfinite(d)
+    out[rc[hit, 0], rc[hit, 1]] = True
     return out
 
 
