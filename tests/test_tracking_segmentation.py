@@ -290,3 +290,24 @@ def test_object_standing_still_in_the_references_is_not_background(cam):
     upd = update_background(bg, f1.depth, P, prev_depth=f1.depth, keep=behind)
     assert (upd[:20, :20] > 0).all()  # learned: nothing tracked there
     assert (upd[still] == 0).all()  # still unknown: the tracked object stands there
+
+
+def test_background_moves_back_on_a_small_step_only_after_consecutive_frames():
+    """Just behind the background (noise): every frame of the window must agree and the nearest reading is
+    taken; far behind (a revealed surface): the current and the previous frame suffice."""
+    from tracking.segmentation import change_threshold
+
+    bg = np.full((4, 4), 1.0, np.float32)
+    thr = float(change_threshold(bg, P)[0, 0])
+    small, big = 1.5 * thr, 3.0 * P.background_jump_k * thr
+    prev2, prev1, cur = (np.full((4, 4), 1.0, np.float32) for _ in range(3))
+    prev1[0, 0] = cur[0, 0] = 1.0 + small  # two frames just behind: not enough
+    prev2[1, 1], prev1[1, 1], cur[1, 1] = 1.0 + small, 1.0 + 1.2 * thr, 1.0 + small  # three frames
+    prev1[2, 2] = cur[2, 2] = 1.0 + big  # revealed
+    out = update_background(bg, cur, P, prev_depth=np.stack([prev2, prev1]))
+    assert out[0, 0] == 1.0
+    assert out[1, 1] == pytest.approx(1.0 + 1.2 * thr)  # the nearest of the three
+    assert out[2, 2] == pytest.approx(1.0 + big)
+    assert (out[3] == 1.0).all()
+    two = update_background(bg, cur, P, prev_depth=prev1, nearest=False)  # one previous frame: as before
+    assert two[0, 0] == pytest.approx(1.0 + small) == two[1, 1]  # the current reading

@@ -141,7 +141,10 @@ class LivePipeline:
         self._since_recent = 0
         self._sizes: deque[int] = deque(maxlen=self.init_stable_frames + 1)
         self._grasp_rejections = 0
-        self._prev: np.ndarray | None = None
+        # the previous decimated depths (newest last) a background update must agree with
+        self._prev: deque[np.ndarray] = deque(
+            maxlen=max(0, self.params.background_confirm_1d - 1, self.params.background_confirm_2d - 1)
+        )
         self.background: np.ndarray | None = None  # (h, w) float32 m, decimated
         self.init_failures = 0
         self.last_init_error = ""
@@ -194,7 +197,8 @@ class LivePipeline:
             out = self._try_initialise(depth, arm, tcp, gripper_closed, full)
         else:
             out = self._track(depth, arm, tcp, gripper_closed)
-        self._prev = depth
+        if self._prev.maxlen:
+            self._prev.append(depth)
         self._timings["total"] = 1e3 * (time.perf_counter() - t0)
         return replace(out, timings_ms=self._timings)
 
@@ -324,7 +328,12 @@ class LivePipeline:
         topology = self.tracker.topology
         res = self.tracker.step(seg.points, tcp=tcp, gripper_closed=closed)
         self._timings.update(self.tracker.last_timings_ms)
-        self.background = update_background(self.background, depth, self.seg_params, arm, self._prev, behind)
+        p = self.params
+        n = (p.background_confirm_2d if topo.kind == "2d" else p.background_confirm_1d) - 1
+        prev = np.stack(list(self._prev)[-n:]) if self._prev and n > 0 else None
+        self.background = update_background(
+            self.background, depth, self.seg_params, arm, prev, behind, nearest=topo.kind != "2d"
+        )
         self._remember(depth)
         if res.status == TrackStatus.LOST:
             # back to waiting: the recent frames (object elsewhere) become the references
