@@ -311,3 +311,27 @@ def test_background_moves_back_on_a_small_step_only_after_consecutive_frames():
     assert (out[3] == 1.0).all()
     two = update_background(bg, cur, P, prev_depth=prev1, nearest=False)  # one previous frame: as before
     assert two[0, 0] == pytest.approx(1.0 + small) == two[1, 1]  # the current reading
+
+
+def test_initial_rope_cloud_is_grown_up_to_the_grippers_holding_it(cam):
+    """Only the middle of a hanging rope moved (slow start): its still ends are grown up to the held TCPs; a
+    growth that cannot reach another gripper is dropped."""
+    from tracking.pipeline import LivePipeline
+    from tracking.segmentation import Segmentation
+
+    K, T = cam
+    s = np.linspace(-1.0, 1.0, 200)
+    c = np.stack([0.25 * s, np.zeros_like(s), 0.03 + 0.15 * s**2], axis=1)  # a U hanging between two grippers
+    r = 0.006
+    depth = S.render_depth([S.table_mesh(), tube_mesh(c, r)], K, T, (H, W))
+    table = S.render_depth([S.table_mesh()], K, T, (H, W))
+    pipe = LivePipeline(P, K, T, "1d")
+    d, t = pipe.decimate(depth), pipe.decimate(table)
+    pipe.set_reference(t)
+    pts, _ = depth_to_points(d, pipe.K_seg, T, np.abs(d - t) > 0.002)
+    middle = pts[np.abs(pts[:, 0]) < 0.08]
+    seg = Segmentation(middle, len(middle), 1)
+    out = pipe.reach_grippers(d, seg, None, c[[0, -1]])
+    assert cKDTree(out.points).query(c[[0, -1]])[0].max() < P.grasp_gate_m
+    assert (cKDTree(c).query(out.points)[0] < r + 0.005).all()  # rope only
+    assert pipe.reach_grippers(d, seg, None, np.array([[0.0, 0.6, 0.3]])) is seg  # nothing leads there

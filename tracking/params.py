@@ -35,7 +35,8 @@ class TrackingParams:
         attach_plane_min_fraction of its pixels within attach_plane_tol_m, m; without one, no
         height test) and reachable through depth steps of at most attach_step_m between
         neighbouring pixels, m; each added part must be thin (lateral spread at most
-        attach_max_spread_m, m). An end dragged along the table (reach 0: off).
+        attach_max_spread_m, m). An end dragged along the table (reach 0: off). attach_iterations:
+        how many times the growth may repeat while a holding gripper's TCP is not reached.
       track_gate_m: in tracking, a cluster is kept if some point lies within this of the previous keypoints, m.
       background_object_gap_m: a farther reading is absorbed into the background only if its 3D
         point lies more than this from the tracked object (last cloud, keypoint edges): else it is
@@ -111,6 +112,7 @@ class TrackingParams:
     cluster_keep_gap_m: float = 0.08
     grow_step_m: float = 0.02
     attach_reach_m: float = 0.03
+    attach_iterations: int = 40
     attach_max_spread_m: float = 0.008
     attach_step_m: float = 0.01
     attach_plane_tol_m: float = 0.004

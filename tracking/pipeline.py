@@ -15,6 +15,7 @@ from collections import deque
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from tracking.classify import classify_object
 from tracking.geometry import decimated_intrinsics, decimation_stride, edge_samples
@@ -220,6 +221,37 @@ class LivePipeline:
             return segment_by_difference(refs, depth, self.K_seg, self.T, p, arm, grow=True)
         return grow_attached_tubes(depth, seg, self.K_seg, self.T, p, arm, self._support)
 
+    def reach_grippers(
+        self, depth: np.ndarray, seg: Segmentation, arm: np.ndarray | None, held: np.ndarray | None
+    ) -> Segmentation:
+        """A 1D object's initial segmentation (of the decimated depth (h, w) m) grown again over its thin
+        parts above the table (``grow_attached_tubes``, ``attach_reach_m`` a step, up to ``attach_iterations``
+        steps) while a holding gripper's TCP (held (G, 3) m) is farther than ``grasp_gate_m`` from it: in a
+        slow start only the middle of a rope moves, and its still ends hang up to the grippers. Kept only when
+        it reaches a gripper the segmentation did not."""
+        p = self.seg_params
+        if held is None or len(held) == 0 or len(seg.points) == 0 or self.kind == "2d" or seg.grown:
+            return seg
+        held = np.asarray(held, np.float64).reshape(-1, 3)
+        reached = cKDTree(seg.points).query(held)[0] <= p.grasp_gate_m
+        if reached.all():
+            return seg
+        near_reached = cKDTree(held[reached]) if reached.any() else None
+        out = seg
+        for _ in range(p.attach_iterations):
+            grown = grow_attached_tubes(depth, out, self.K_seg, self.T, p, arm, self._support)
+            new = grown.points[len(out.points):]
+            if near_reached is not None:  # the object is whole there already: what grows is the gripper
+                new = new[~np.isfinite(near_reached.query(new, distance_upper_bound=p.grasp_gate_m)[0])]
+            if len(new) == 0:
+                break
+            out = replace(out, points=np.concatenate([out.points, new]))
+            if (cKDTree(out.points).query(held)[0] <= p.grasp_gate_m).all():
+                break
+        # a growth that stalls before reaching another gripper found something else (a surface patch, a gap)
+        now = cKDTree(out.points).query(held)[0] <= p.grasp_gate_m
+        return out if now.sum() > reached.sum() else seg
+
     def refine(self, depth: np.ndarray, seg: Segmentation, arm: np.ndarray | None, refs: np.ndarray) -> np.ndarray:
         """The initial object cloud (N, 3) m re-lifted from the full-resolution depth (H, W) m, a grown
         one re-grown against the decimated references refs (R, h, w) m, a 1D one's thin parts above
@@ -285,6 +317,9 @@ class LivePipeline:
         n = len(seg.points)
         if self._growing(n) or n < self.min_init_points:
             return self._empty("waiting", n, "waiting for the arms to move the object")
+        if tcp is not None:
+            held = np.asarray(tcp, np.float64).reshape(-1, 3)
+            seg = self.reach_grippers(depth, seg, arm, held if closed is None else held[np.asarray(closed, bool)])
         cloud = self.refine(full, seg, arm, refs)
         try:
             ini, res = self.tracker.initialise(cloud, tcp=tcp, kind=self.kind, gripper_closed=closed)
