@@ -35,7 +35,9 @@ class TrackingParams:
         attach_plane_min_fraction of its pixels within attach_plane_tol_m, m; without one, no
         height test) and reachable through depth steps of at most attach_step_m between
         neighbouring pixels, m; each added part must be thin (lateral spread at most
-        attach_max_spread_m, m). An end dragged along the table (reach 0: off). attach_iterations:
+        attach_max_spread_m, m). attach_step_px: the step is at least this many pixel footprints (a
+        tube at up to ~70 degrees to the image plane on a decimated image). An end dragged along the
+        table (reach 0: off). attach_iterations:
         how many times the growth may repeat while a holding gripper's TCP is not reached.
       track_gate_m: in tracking, a cluster is kept if some point lies within this of the previous keypoints, m.
       background_object_gap_m: a farther reading is absorbed into the background only if its 3D
@@ -115,6 +117,7 @@ class TrackingParams:
     attach_iterations: int = 40
     attach_max_spread_m: float = 0.008
     attach_step_m: float = 0.01
+    attach_step_px: float = 3.0
     attach_plane_tol_m: float = 0.004
     attach_plane_min_fraction: float = 0.3
     attach_min_height_m: float = 0.005

@@ -236,13 +236,14 @@ class LivePipeline:
         reached = cKDTree(seg.points).query(held)[0] <= p.grasp_gate_m
         if reached.all():
             return seg
-        near_reached = cKDTree(held[reached]) if reached.any() else None
+        # what grows near a gripper is the gripper: within grasp_gate_m of one the cloud reached already,
+        # within attach_reach_m of the others (the end is then within grasp_gate_m: initialisation puts it at the TCP)
+        gate = np.where(reached, p.grasp_gate_m, min(p.attach_reach_m, p.grasp_gate_m))
         out = seg
         for _ in range(p.attach_iterations):
             grown = grow_attached_tubes(depth, out, self.K_seg, self.T, p, arm, self._support)
             new = grown.points[len(out.points):]
-            if near_reached is not None:  # the object is whole there already: what grows is the gripper
-                new = new[~np.isfinite(near_reached.query(new, distance_upper_bound=p.grasp_gate_m)[0])]
+            new = new[(np.linalg.norm(new[:, None, :] - held[None, :, :], axis=2) > gate).all(axis=1)]
             if len(new) == 0:
                 break
             out = replace(out, points=np.concatenate([out.points, new]))

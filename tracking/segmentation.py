@@ -411,7 +411,8 @@ def grow_attached_tubes(
     m, camera side positive: ``support_plane`` of the reference, the table; a rope 14 mm thick
     meets the table without a depth step, so continuity alone cannot separate them) and reachable
     from the object's pixels over a depth-continuous surface (``grow_depth_region``, step
-    ``attach_step_m``) are added, when each added connected part is thin (lateral spread, the square
+    ``attach_step_m`` or ``attach_step_px`` pixel footprints at the cloud's median depth, the
+    larger) are added, when each added connected part is thin (lateral spread, the square
     root of its second PCA eigenvalue, at most ``attach_max_spread_m``): the rest of a tube, not a
     patch of surface. Returns a new Segmentation (the input when nothing is added or the reach is 0).
     """
@@ -440,7 +441,9 @@ def grow_attached_tubes(
         return seg
     cand = np.zeros((H, W), bool)
     cand[zpix[:, 0], zpix[:, 1]] = True
-    grown = grow_depth_region(depth1, obj, obj | cand, params.attach_step_m) & cand
+    # a tube inclined to the image plane steps by its slope times the pixel footprint between neighbours
+    step = max(params.attach_step_m, params.attach_step_px * px_m)
+    grown = grow_depth_region(depth1, obj, obj | cand, step) & cand
     if not grown.any():
         return seg
     _, lab = cv2.connectedComponents(grown.astype(np.uint8), connectivity=8)
