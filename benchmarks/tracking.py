@@ -282,7 +282,8 @@ def init_consistency(
     cfg0 = station_config(width, height)
     fps = cfg0.station.camera.fps
     k1 = int(round((settle_s + at_s) * fps))
-    times = [0.0] + [(k1 - j * reference_gap) / fps for j in (3, 2, 1)] + [k1 / fps]
+    # the pipeline's references: D0 and the recent frames every reference_gap before the initialisation frame
+    times = [0.0] + [(k1 - j * reference_gap) / fps for j in (3, 2, 1) if k1 - j * reference_gap > 0] + [k1 / fps]
     for seed in range(first_seed, first_seed + seeds):
         cfg = station_config(width, height, camera_seed=seed)
         obj = object_config(cfg, name, sim)
@@ -293,6 +294,7 @@ def init_consistency(
         pipe.set_reference(d[0])
         arm = pipe.arm_mask(d[-1], V, F)
         seg = pipe.segment_initial(np.stack(d[:-1]), d[-1], arm)
+        seg = pipe.reach_grippers(d[-1], seg, arm, tcp[np.asarray(closed, bool)])
         cloud = pipe.refine(seq.frames[-1].depth.astype(np.float32) * np.float32(1e-3), seg, arm, np.stack(d[:-1]))
         try:
             ini, _ = pipe.tracker.initialise(cloud, tcp=tcp, kind=pipe.kind, gripper_closed=closed)

@@ -12,9 +12,11 @@ from tracking.geometry import depth_to_points, project_points
 from tracking.params import TrackingParams
 from tracking.segmentation import (
     background_from_depths,
+    behind_near_object,
     render_arm_mask,
     segment_against_background,
     segment_by_difference,
+    unchanged_object_pixels,
     update_background,
 )
 
@@ -258,3 +260,78 @@ def test_refined_1d_cloud_regrows_its_unmoved_end_at_full_resolution(cam):
     assert grown[:, 0].max() > 0.15 - 0.005  # the end is reached
     d, _ = cKDTree(c).query(grown)
     assert (d < 0.007 + 0.004).all()  # rope only: none of the table around it
+
+
+def test_object_standing_still_in_the_references_is_not_background(cam):
+    """A rope that stood where it is in every reference: its pixels' background becomes unknown, so the
+    tracking segmentation finds it (near the tracked keypoints) instead of treating it as background; an
+    unknown pixel away from the object is learned from two frames."""
+    K, T = cam
+    rng = np.random.default_rng(4)
+    refs = np.stack([S.rope_scene(0.0, K, T, (H, W), rng).depth for _ in range(2)])
+    f1 = S.rope_scene(0.0, K, T, (H, W), rng)  # not moved yet (slow motion)
+    bg = background_from_depths(refs)
+    cloud, _ = depth_to_points(f1.depth, K, T, S.render_depth([tube_mesh(f1.centreline, f1.radius)], K, T, (H, W)) > 0)
+    kp = f1.centreline[::20]
+    old = segment_against_background(f1.depth, bg, K, T, P, None, kp)
+    assert len(old.points) == 0  # the rope is in the background
+    still = unchanged_object_pixels(f1.depth, bg, cloud, K, T, P)
+    rope_px = S.render_depth([tube_mesh(f1.centreline, f1.radius)], K, T, (H, W)) > 0
+    assert still[rope_px].mean() > 0.9
+    pts, _ = depth_to_points(f1.depth, K, T, still)
+    assert (cKDTree(f1.centreline).query(pts)[0] < f1.radius + 0.004).all()  # rope only, no table
+    bg[still] = 0.0
+    bg[:20, :20] = 0.0  # table pixels never seen (missing in every reference)
+    behind = behind_near_object(f1.depth, bg, P, cloud, K, T)
+    seg = segment_against_background(f1.depth, bg, K, T, P, None, kp, behind)
+    d, _ = cKDTree(f1.centreline).query(seg.points)
+    assert d.max() < f1.radius + 0.004
+    assert cKDTree(seg.points).query(f1.centreline)[0].max() < 0.01  # the whole rope
+    upd = update_background(bg, f1.depth, P, prev_depth=f1.depth, keep=behind)
+    assert (upd[:20, :20] > 0).all()  # learned: nothing tracked there
+    assert (upd[still] == 0).all()  # still unknown: the tracked object stands there
+
+
+def test_background_moves_back_on_a_small_step_only_after_consecutive_frames():
+    """Just behind the background (noise): every frame of the window must agree and the nearest reading is
+    taken; far behind (a revealed surface): the current and the previous frame suffice."""
+    from tracking.segmentation import change_threshold
+
+    bg = np.full((4, 4), 1.0, np.float32)
+    thr = float(change_threshold(bg, P)[0, 0])
+    small, big = 1.5 * thr, 3.0 * P.background_jump_k * thr
+    prev2, prev1, cur = (np.full((4, 4), 1.0, np.float32) for _ in range(3))
+    prev1[0, 0] = cur[0, 0] = 1.0 + small  # two frames just behind: not enough
+    prev2[1, 1], prev1[1, 1], cur[1, 1] = 1.0 + small, 1.0 + 1.2 * thr, 1.0 + small  # three frames
+    prev1[2, 2] = cur[2, 2] = 1.0 + big  # revealed
+    out = update_background(bg, cur, P, prev_depth=np.stack([prev2, prev1]))
+    assert out[0, 0] == 1.0
+    assert out[1, 1] == pytest.approx(1.0 + 1.2 * thr)  # the nearest of the three
+    assert out[2, 2] == pytest.approx(1.0 + big)
+    assert (out[3] == 1.0).all()
+    two = update_background(bg, cur, P, prev_depth=prev1, nearest=False)  # one previous frame: as before
+    assert two[0, 0] == pytest.approx(1.0 + small) == two[1, 1]  # the current reading
+
+
+def test_initial_rope_cloud_is_grown_up_to_the_grippers_holding_it(cam):
+    """Only the middle of a hanging rope moved (slow start): its still ends are grown up to the held TCPs; a
+    growth that cannot reach another gripper is dropped."""
+    from tracking.pipeline import LivePipeline
+    from tracking.segmentation import Segmentation
+
+    K, T = cam
+    s = np.linspace(-1.0, 1.0, 200)
+    c = np.stack([0.25 * s, np.zeros_like(s), 0.03 + 0.15 * s**2], axis=1)  # a U hanging between two grippers
+    r = 0.006
+    depth = S.render_depth([S.table_mesh(), tube_mesh(c, r)], K, T, (H, W))
+    table = S.render_depth([S.table_mesh()], K, T, (H, W))
+    pipe = LivePipeline(P, K, T, "1d")
+    d, t = pipe.decimate(depth), pipe.decimate(table)
+    pipe.set_reference(t)
+    pts, _ = depth_to_points(d, pipe.K_seg, T, np.abs(d - t) > 0.002)
+    middle = pts[np.abs(pts[:, 0]) < 0.08]
+    seg = Segmentation(middle, len(middle), 1)
+    out = pipe.reach_grippers(d, seg, None, c[[0, -1]])
+    assert cKDTree(out.points).query(c[[0, -1]])[0].max() < P.grasp_gate_m
+    assert (cKDTree(c).query(out.points)[0] < r + 0.005).all()  # rope only
+    assert pipe.reach_grippers(d, seg, None, np.array([[0.0, 0.6, 0.3]])) is seg  # nothing leads there

@@ -35,11 +35,22 @@ class TrackingParams:
         attach_plane_min_fraction of its pixels within attach_plane_tol_m, m; without one, no
         height test) and reachable through depth steps of at most attach_step_m between
         neighbouring pixels, m; each added part must be thin (lateral spread at most
-        attach_max_spread_m, m). An end dragged along the table (reach 0: off).
+        attach_max_spread_m, m). attach_step_px: the step is at least this many pixel footprints (a
+        tube at up to ~70 degrees to the image plane on a decimated image). An end dragged along the
+        table (reach 0: off). attach_iterations:
+        how many times the growth may repeat while a holding gripper's TCP is not reached.
       track_gate_m: in tracking, a cluster is kept if some point lies within this of the previous keypoints, m.
       background_object_gap_m: a farther reading is absorbed into the background only if its 3D
         point lies more than this from the tracked object (last cloud, keypoint edges): else it is
         the object moving away from the camera, m.
+      background_confirm_1d, background_confirm_2d, background_jump_k: a farther reading replaces the
+        background when it is more than background_jump_k change thresholds behind in this frame and
+        behind in the previous one (a revealed surface), or else when this many consecutive frames
+        (the current one included) are all behind it, taking the nearest of them (noise ratchets the
+        background farther otherwise). A rope lying on the table stands only 1-2 change thresholds in
+        front of it, the band the ratchet fills with speckle: 1D objects wait 3 frames and take the
+        nearest reading; a cloth resting on the table is within the noise of it anyway: 2D objects
+        wait 2 and take the current reading.
     Classification
       classify_seeds, classify_radius_m, classify_k: number of random seeds, neighbourhood radius (m)
         and maximum neighbours per seed.
@@ -103,13 +114,18 @@ class TrackingParams:
     cluster_keep_gap_m: float = 0.08
     grow_step_m: float = 0.02
     attach_reach_m: float = 0.03
+    attach_iterations: int = 40
     attach_max_spread_m: float = 0.008
     attach_step_m: float = 0.01
+    attach_step_px: float = 3.0
     attach_plane_tol_m: float = 0.004
     attach_plane_min_fraction: float = 0.3
     attach_min_height_m: float = 0.005
     track_gate_m: float = 0.05
     background_object_gap_m: float = 0.015
+    background_confirm_1d: int = 3
+    background_confirm_2d: int = 2
+    background_jump_k: float = 2.0
 
     classify_seeds: int = 64
     classify_radius_m: float = 0.03

@@ -15,6 +15,7 @@ from collections import deque
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from tracking.classify import classify_object
 from tracking.geometry import decimated_intrinsics, decimation_stride, edge_samples
@@ -30,6 +31,7 @@ from tracking.segmentation import (
     segment_against_background,
     segment_by_difference,
     support_plane,
+    unchanged_object_pixels,
     update_background,
 )
 from tracking.tracker import Tracker, TrackStatus
@@ -140,7 +142,10 @@ class LivePipeline:
         self._since_recent = 0
         self._sizes: deque[int] = deque(maxlen=self.init_stable_frames + 1)
         self._grasp_rejections = 0
-        self._prev: np.ndarray | None = None
+        # the previous decimated depths (newest last) a background update must agree with
+        self._prev: deque[np.ndarray] = deque(
+            maxlen=max(0, self.params.background_confirm_1d - 1, self.params.background_confirm_2d - 1)
+        )
         self.background: np.ndarray | None = None  # (h, w) float32 m, decimated
         self.init_failures = 0
         self.last_init_error = ""
@@ -193,7 +198,8 @@ class LivePipeline:
             out = self._try_initialise(depth, arm, tcp, gripper_closed, full)
         else:
             out = self._track(depth, arm, tcp, gripper_closed)
-        self._prev = depth
+        if self._prev.maxlen:
+            self._prev.append(depth)
         self._timings["total"] = 1e3 * (time.perf_counter() - t0)
         return replace(out, timings_ms=self._timings)
 
@@ -214,6 +220,38 @@ class LivePipeline:
         if self.kind is None and classify_object(seg.points, p).kind == "2d":
             return segment_by_difference(refs, depth, self.K_seg, self.T, p, arm, grow=True)
         return grow_attached_tubes(depth, seg, self.K_seg, self.T, p, arm, self._support)
+
+    def reach_grippers(
+        self, depth: np.ndarray, seg: Segmentation, arm: np.ndarray | None, held: np.ndarray | None
+    ) -> Segmentation:
+        """A 1D object's initial segmentation (of the decimated depth (h, w) m) grown again over its thin
+        parts above the table (``grow_attached_tubes``, ``attach_reach_m`` a step, up to ``attach_iterations``
+        steps) while a holding gripper's TCP (held (G, 3) m) is farther than ``grasp_gate_m`` from it: in a
+        slow start only the middle of a rope moves, and its still ends hang up to the grippers. Kept only when
+        it reaches a gripper the segmentation did not."""
+        p = self.seg_params
+        if held is None or len(held) == 0 or len(seg.points) == 0 or self.kind == "2d" or seg.grown:
+            return seg
+        held = np.asarray(held, np.float64).reshape(-1, 3)
+        reached = cKDTree(seg.points).query(held)[0] <= p.grasp_gate_m
+        if reached.all():
+            return seg
+        # what grows near a gripper is the gripper: within grasp_gate_m of one the cloud reached already,
+        # within attach_reach_m of the others (the end is then within grasp_gate_m: initialisation puts it at the TCP)
+        gate = np.where(reached, p.grasp_gate_m, min(p.attach_reach_m, p.grasp_gate_m))
+        out = seg
+        for _ in range(p.attach_iterations):
+            grown = grow_attached_tubes(depth, out, self.K_seg, self.T, p, arm, self._support)
+            new = grown.points[len(out.points):]
+            new = new[(np.linalg.norm(new[:, None, :] - held[None, :, :], axis=2) > gate).all(axis=1)]
+            if len(new) == 0:
+                break
+            out = replace(out, points=np.concatenate([out.points, new]))
+            if (cKDTree(out.points).query(held)[0] <= p.grasp_gate_m).all():
+                break
+        # a growth that stalls before reaching another gripper found something else (a surface patch, a gap)
+        now = cKDTree(out.points).query(held)[0] <= p.grasp_gate_m
+        return out if now.sum() > reached.sum() else seg
 
     def refine(self, depth: np.ndarray, seg: Segmentation, arm: np.ndarray | None, refs: np.ndarray) -> np.ndarray:
         """The initial object cloud (N, 3) m re-lifted from the full-resolution depth (H, W) m, a grown
@@ -280,6 +318,9 @@ class LivePipeline:
         n = len(seg.points)
         if self._growing(n) or n < self.min_init_points:
             return self._empty("waiting", n, "waiting for the arms to move the object")
+        if tcp is not None:
+            held = np.asarray(tcp, np.float64).reshape(-1, 3)
+            seg = self.reach_grippers(depth, seg, arm, held if closed is None else held[np.asarray(closed, bool)])
         cloud = self.refine(full, seg, arm, refs)
         try:
             ini, res = self.tracker.initialise(cloud, tcp=tcp, kind=self.kind, gripper_closed=closed)
@@ -297,6 +338,8 @@ class LivePipeline:
                 self.tracker.reset()
                 return self._empty("waiting", n, "waiting: the segmented object does not reach every closed gripper")
         bg = background_from_depths(refs)
+        # where the object stood still in every reference the background is unknown, not the object
+        bg[unchanged_object_pixels(depth, bg, seg.points, self.K_seg, self.T, self.seg_params)] = 0.0
         # the object's pixels behind the references (moving away) are object, not revealed background
         keep = behind_near_object(depth, bg, self.seg_params, seg.points, self.K_seg, self.T, arm)
         self.background = update_background(bg, depth, self.seg_params, arm, keep=keep)
@@ -321,7 +364,12 @@ class LivePipeline:
         topology = self.tracker.topology
         res = self.tracker.step(seg.points, tcp=tcp, gripper_closed=closed)
         self._timings.update(self.tracker.last_timings_ms)
-        self.background = update_background(self.background, depth, self.seg_params, arm, self._prev, behind)
+        p = self.params
+        n = (p.background_confirm_2d if topo.kind == "2d" else p.background_confirm_1d) - 1
+        prev = np.stack(list(self._prev)[-n:]) if self._prev and n > 0 else None
+        self.background = update_background(
+            self.background, depth, self.seg_params, arm, prev, behind, nearest=topo.kind != "2d"
+        )
         self._remember(depth)
         if res.status == TrackStatus.LOST:
             # back to waiting: the recent frames (object elsewhere) become the references

@@ -411,7 +411,8 @@ def grow_attached_tubes(
     m, camera side positive: ``support_plane`` of the reference, the table; a rope 14 mm thick
     meets the table without a depth step, so continuity alone cannot separate them) and reachable
     from the object's pixels over a depth-continuous surface (``grow_depth_region``, step
-    ``attach_step_m``) are added, when each added connected part is thin (lateral spread, the square
+    ``attach_step_m`` or ``attach_step_px`` pixel footprints at the cloud's median depth, the
+    larger) are added, when each added connected part is thin (lateral spread, the square
     root of its second PCA eigenvalue, at most ``attach_max_spread_m``): the rest of a tube, not a
     patch of surface. Returns a new Segmentation (the input when nothing is added or the reach is 0).
     """
@@ -440,7 +441,9 @@ def grow_attached_tubes(
         return seg
     cand = np.zeros((H, W), bool)
     cand[zpix[:, 0], zpix[:, 1]] = True
-    grown = grow_depth_region(depth1, obj, obj | cand, params.attach_step_m) & cand
+    # a tube inclined to the image plane steps by its slope times the pixel footprint between neighbours
+    step = max(params.attach_step_m, params.attach_step_px * px_m)
+    grown = grow_depth_region(depth1, obj, obj | cand, step) & cand
     if not grown.any():
         return seg
     _, lab = cv2.connectedComponents(grown.astype(np.uint8), connectivity=8)
@@ -555,12 +558,14 @@ def behind_near_object(
     T_world_cam: np.ndarray,
     arm_mask: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(H, W) bool: valid pixels significantly behind the background (m) whose 3D point lies within
+    """(H, W) bool: valid pixels significantly behind the background (m), or without a background
+    (0: unknown, e.g. where the object stood still in every reference), whose 3D point lies within
     ``background_object_gap_m`` of the tracked object (points (M, 3) m world, e.g. its densified
     keypoint edges): the object moved away from the camera behind a background that still holds
-    it from the reference frames. Such pixels are object, not revealed background."""
-    out = valid_depth(depth, params) & (background > 0)
-    out &= depth - background > change_threshold(background, params)
+    it from the reference frames, or is where nothing else was ever seen. Such pixels are object,
+    not revealed background."""
+    out = valid_depth(depth, params)
+    out &= (background <= 0) | (depth - background > change_threshold(background, params))
     if arm_mask is not None:
         out &= ~arm_mask
     if len(object_points) == 0 or not out.any():
@@ -580,15 +585,22 @@ def update_background(
     arm_mask: np.ndarray | None = None,
     prev_depth: np.ndarray | None = None,
     keep: np.ndarray | None = None,
+    nearest: bool = True,
 ) -> np.ndarray:
     """Background (H, W) float32 m updated with newly revealed farther surfaces of depth (H, W) m.
 
     Where the measured depth is significantly behind the background, whatever stood there (the
     object in the reference frames) has moved away: the farther surface becomes the background.
-    With ``prev_depth`` (H, W) m, the previous frame, a pixel must be behind in both frames: a
-    single noisy or flying reading then cannot push the background back (one-frame outliers would
-    otherwise ratchet it farther frame after frame and the foreground would fill with noise).
-    keep: (H, W) bool pixels not to update (``behind_near_object``: the object, not background).
+    With ``prev_depth`` (P, H, W) m, the previous frames (oldest first; (H, W): one), a pixel more than
+    ``background_jump_k`` change thresholds behind (a surface revealed) must be behind in the newest
+    previous frame too; one less far behind must be behind in all of them and takes the nearest of
+    these readings (``nearest``; else the current one). Noisy or flying readings then cannot push the
+    background back (they would ratchet it farther frame after frame and the foreground would fill
+    with noise: a stereo sensor noisier than ``diff_noise_coeff`` crosses the change threshold on a
+    few % of the pixels in a frame, in two frames running on ~0.1 %, in three on ~0.01 %, and
+    seldom by twice the threshold).
+    keep: (H, W) bool pixels not to update (``behind_near_object``: the object, not background). A
+    pixel without a background (0) takes the depth it has in all these frames (``keep`` aside).
     """
     ok = valid_depth(depth, params)
     if arm_mask is not None:
@@ -598,10 +610,46 @@ def update_background(
     bg_ok = background > 0
     thr = change_threshold(background, params)
     revealed = ok & bg_ok & (depth - background > thr)
-    if prev_depth is not None:
-        revealed &= prev_depth - background > thr
+    unknown = ok & ~bg_ok
     out = background.copy()
-    out[revealed] = depth[revealed]
+    if prev_depth is None:
+        out[revealed | unknown] = depth[revealed | unknown]
+        return out
+    prevs = np.asarray(prev_depth, np.float32).reshape(-1, *depth.shape)
+    jump = revealed & (depth - background > np.float32(params.background_jump_k) * thr)
+    jump &= prevs[-1] - background > thr
+    near = depth
+    for prev in prevs:
+        revealed &= prev - background > thr
+        unknown &= valid_depth(prev, params)
+        near = np.minimum(near, prev) if nearest else near
+    revealed &= ~jump
+    out[jump] = depth[jump]
+    out[revealed] = near[revealed]
+    out[unknown] = depth[unknown]
+    return out
+
+
+def unchanged_object_pixels(
+    depth: np.ndarray, background: np.ndarray, cloud: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray,
+    params: TrackingParams,
+) -> np.ndarray:
+    """(H, W) bool: pixels of the object cloud (N, 3) m world in depth (H, W) m (within a voxel's footprint of
+    its projection and ``voxel_m`` of it in 3D) where the background (H, W) m is within the change threshold
+    of the depth: the object stood there in every reference, so the background there is the object itself."""
+    H, W = depth.shape
+    on, zmed = pixel_mask(cloud, K, T_world_cam, (H, W))
+    r = max(1, int(np.ceil(params.voxel_m * float(K[0, 0]) / zmed)))
+    near = cv2.dilate(on.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2))
+    cand = near.astype(bool) & valid_depth(depth, params) & (background > 0)
+    cand &= np.abs(depth - background) <= change_threshold(background, params)
+    out = np.zeros((H, W), bool)
+    if len(cloud) == 0 or not cand.any():
+        return out
+    pts, rc = depth_to_points(depth, K, T_world_cam, cand)
+    d, _ = cKDTree(cloud).query(pts, distance_upper_bound=params.voxel_m)
+    hit = np.isfinite(d)
+    out[rc[hit, 0], rc[hit, 1]] = True
     return out
 
 

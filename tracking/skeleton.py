@@ -93,7 +93,7 @@ def _branches(
     order = inner_idx[np.lexsort((dist[inner_idx], lab[inner_idx]))]
     labs = lab[order]
     starts = np.searchsorted(labs, np.unique(labs))
-    ends = np.append(starts[1:], len(order))
+    ends = np.append(starts[1:], len(order)) if len(starts) else starts  # no inner pixel: no such branch
     for s, e in zip(starts, ends, strict=True):
         pix = order[s:e]
         ends_nodes = nd[lab[it] == lab[pix[0]]]

@@ -271,15 +271,21 @@ class Tracker:
         gripper_closed: np.ndarray | None = None,
     ) -> tuple[Initialisation, FrameResult]:
         """Initialise on a segmented cloud (M, 3) m; tcp (G, 3) m of the grippers gives grasp indices
-        (and keypoint 0 at the first gripper's end); with gripper_closed (G,) bool the ends held by
-        closed grippers are placed at their TCPs.
+        (and keypoint 0 at the first gripper's end); the ends (corners) held by the closed grippers
+        (gripper_closed (G,) bool; None: for a cloth, kind "2d", every TCP within ``grasp_gate_m`` of a
+        corner) are placed at their TCPs.
 
         Raises tracking.init.InitialisationError when the cloud cannot be initialised.
         """
         self.reset()
         tcps = None if tcp is None else np.asarray(tcp, np.float64).reshape(-1, 3)
         hint = None if tcps is None or len(tcps) == 0 else tcps[0]
-        held = None if tcps is None or gripper_closed is None else tcps[np.asarray(gripper_closed, bool)]
+        if tcps is None:
+            held = None
+        elif gripper_closed is not None:
+            held = tcps[np.asarray(gripper_closed, bool)]
+        else:  # no gripper states: a cloth's corner within grasp_gate_m of a TCP is held there (tracking pins it)
+            held = tcps if kind == "2d" else None
         ini = initialise(cloud, self.K, self.T, self.params, kind, root_hint=hint, held=held)
         self.topology = ini.topology
         self.keypoints = ini.keypoints
