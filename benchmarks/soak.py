@@ -318,14 +318,29 @@ def read_events(out: Path) -> list[dict[str, Any]]:
     return recs
 
 
-def frames_lost(out: Path, faults: list[Fault], fps: float) -> tuple[int, Counter[str], list[str]]:
+def episode_table(out: Path) -> list[dict[str, Any]]:
+    """Every finished episode (tdrecord's manifest entries plus unlisted files); an entry without the close-time
+    fields (a recovered episode) gets ``n_frames`` / ``first_frame`` / ``last_frame`` from its frames."""
+    from tdrecord import load_episode
+    from tdrecord.api import episode_entries
+
+    entries = episode_entries(out)
+    for e in entries:
+        if not all(k in e for k in ("n_frames", "first_frame", "last_frame")):
+            frames = load_episode(out / e["file"], images=False).frame_numbers
+            e.update(n_frames=len(frames), first_frame=int(frames[0]) if len(frames) else 0,
+                     last_frame=int(frames[-1]) if len(frames) else -1)
+    return entries
+
+
+def frames_lost(out: Path, manifest: list[dict[str, Any]], faults: list[Fault], fps: float,
+                ) -> tuple[int, Counter[str], list[str]]:
     """(frames missing inside episodes outside every fault window, per fault: frames missing in its window, details).
 
     Frame k of the mock camera is captured at CLOCK_MONOTONIC k / fps, so a gap maps onto the faults' windows.
     """
     from tdrecord import load_episode
 
-    manifest = json.loads((out / "manifest.json").read_text())["episodes"]
     outside = 0
     inside: Counter[str] = Counter()
     details = []
@@ -350,7 +365,7 @@ def frames_lost(out: Path, faults: list[Fault], fps: float) -> tuple[int, Counte
     return outside, inside, details
 
 
-def audit_runs(out: Path, config: Config) -> tuple[bool, list[str]]:
+def audit_runs(out: Path, manifest: list[dict[str, Any]], config: Config) -> tuple[bool, list[str]]:
     """Every planned run journaled ``done`` exactly once, its episodes present, no duplicated episode."""
     problems: list[str] = []
     planned = {run_key(i) for i in build_plan(config.plan)}
@@ -365,15 +380,14 @@ def audit_runs(out: Path, config: Config) -> tuple[bool, list[str]]:
     extra = set(done) - planned
     if extra:
         problems.append(f"{len(extra)} done run(s) not in the plan: {sorted(extra)[:5]}")
-    manifest = json.loads((out / "manifest.json").read_text())["episodes"]
     files = {e["file"] for e in manifest}
     for r in records:
         if r.get("type") == "run" and r.get("outcome") == "done":
             lost = [f for f in r.get("episodes", []) if f not in files or not (out / f).exists()]
             if lost:
                 problems.append(f"run {record_key(r)} done with missing episode(s) {lost}")
-    ids = Counter((e["object"], e["program"], e["speed"], e["repeat"], e["plan_pass"], e["attempt"],
-                   e["chunk_index"]) for e in manifest)
+    ids = Counter(tuple(e.get(k) for k in ("object", "program", "speed", "repeat", "plan_pass", "attempt",
+                                           "chunk_index")) for e in manifest)
     dups = [k for k, n in ids.items() if n > 1]
     if dups:
         problems.append(f"{len(dups)} episode(s) of one run attempt written twice: {dups[:5]}")
@@ -390,12 +404,13 @@ def audit_runs(out: Path, config: Config) -> tuple[bool, list[str]]:
 def report(soak: Soak, config: Config, wall: float) -> bool:
     """Print the figures; True when the dataset audit passed and no frame was lost outside faults."""
     out = soak.out
-    manifest = json.loads((out / "manifest.json").read_text())["episodes"] if (out / "manifest.json").exists() else []
+    manifest = episode_table(out)
     print(f"\n=== soak: {soak.minutes:g} min planned, {wall / 60:.1f} min wall, "
           f"{len(build_plan(config.plan))} runs planned, daemon rc {soak.daemon_rcs} ===")
-    complete = sum(1 for e in manifest if e.get("complete"))
+    complete = sum(1 for e in manifest if e.get("complete") is True)
     frames = sum(int(e["n_frames"]) for e in manifest)
-    print(f"episodes written : {len(manifest)} ({complete} complete, {len(manifest) - complete} cut by a fault), "
+    print(f"episodes written : {len(manifest)} ({complete} complete, {len(manifest) - complete} cut short by a "
+          f"fault or recovered), "
           f"{frames} frames, {sum(int(e['bytes']) for e in manifest) / 1e9:.2f} GB")
     print("faults injected  :")
     wall = time.time() - time.monotonic()
@@ -405,7 +420,7 @@ def report(soak: Soak, config: Config, wall: float) -> bool:
                        f"-{time.strftime('%H:%M:%S', time.localtime(f.window[1] + wall))}]")
         state = f"SKIPPED ({f.skipped})" if f.skipped else ("done" if f.done else "NOT REACHED")
         print(f"  {f.kind:<14} {state}{': ' + f.note if f.note and not f.skipped else ''}")
-    lost_out, lost_in, details = (frames_lost(out, soak.faults, config.station.camera.fps) if manifest
+    lost_out, lost_in, details = (frames_lost(out, manifest, soak.faults, config.station.camera.fps) if manifest
                                   else (0, Counter(), []))
     print(f"frames lost      : {lost_out} outside injected faults, {sum(lost_in.values())} inside fault windows ("
           + (", ".join(f"{k} {n}" for k, n in lost_in.items()) or "none") + ")")
@@ -452,7 +467,7 @@ def report(soak: Soak, config: Config, wall: float) -> bool:
         last = sum(s.rss_mb for s in same_pid[-q:]) / q
         print(f"  daemon RSS, last process: first quarter {first:.0f} MB -> last quarter {last:.0f} MB "
               f"({last - first:+.0f} MB)")
-    ok, problems = audit_runs(out, config) if manifest else (False, ["no manifest.json"])
+    ok, problems = audit_runs(out, manifest, config) if manifest else (False, ["no episodes"])
     print("every planned run exactly once: " + ("YES" if ok else "NO"))
     for p in problems:
         print(f"  {p}")
