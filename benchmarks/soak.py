@@ -82,6 +82,7 @@ class Sample:
     rss_mb: float
     worker_cpu_s: float | None
     worker_rss_mb: float | None
+    load1: float  # the machine's 1-minute load average (it is shared)
 
 
 @dataclass
@@ -301,7 +302,7 @@ def sample(soak: Soak, daemon: subprocess.Popen[bytes]) -> None:
     if w is not None:
         soak.worker_pids.add(w)
     soak.samples.append(Sample(time.monotonic(), daemon.pid, u[0], u[1], wu[0] if wu else None,
-                               wu[1] if wu else None))
+                               wu[1] if wu else None, os.getloadavg()[0]))
 
 
 # ---------------------------------------------------------------------- audit
@@ -446,7 +447,7 @@ def report(soak: Soak, config: Config, wall: float) -> bool:
     print(f"live keypoints   : {with_kp} of {kp_frames} frames ({100 * with_kp / max(kp_frames, 1):.1f} %), "
           f"{len(soak.worker_pids)} worker process(es) seen")
     print("daemon CPU / RSS : (CPU % over the previous sample; worker in brackets)")
-    print(f"  {'t s':>6} {'pid':>7} {'CPU %':>6} {'RSS MB':>7} {'[wCPU %':>8} {'wRSS MB]':>9}")
+    print(f"  {'t s':>6} {'pid':>7} {'CPU %':>6} {'RSS MB':>7} {'[wCPU %':>8} {'wRSS MB]':>9} {'load':>5}")
     start = soak.samples[0].t if soak.samples else 0.0
     prev: Sample | None = None
     rows = [s for i, s in enumerate(soak.samples) if i % max(1, len(soak.samples) // 25) == 0 or
@@ -458,15 +459,17 @@ def report(soak: Soak, config: Config, wall: float) -> bool:
                 if same and prev is not None and s.worker_cpu_s is not None and prev.worker_cpu_s is not None
                 and s.worker_cpu_s >= prev.worker_cpu_s else float("nan"))
         print(f"  {s.t - start:6.0f} {s.pid:7d} {cpu:6.1f} {s.rss_mb:7.0f} {wcpu:8.1f} "
-              f"{s.worker_rss_mb if s.worker_rss_mb is not None else float('nan'):9.0f}")
+              f"{s.worker_rss_mb if s.worker_rss_mb is not None else float('nan'):9.0f} {s.load1:5.1f}")
         prev = s
-    same_pid = [s for s in soak.samples if soak.samples and s.pid == soak.samples[-1].pid]
-    if len(same_pid) >= 4:
-        q = len(same_pid) // 4
-        first = sum(s.rss_mb for s in same_pid[:q]) / q
-        last = sum(s.rss_mb for s in same_pid[-q:]) / q
-        print(f"  daemon RSS, last process: first quarter {first:.0f} MB -> last quarter {last:.0f} MB "
-              f"({last - first:+.0f} MB)")
+    for pid in dict.fromkeys(s.pid for s in soak.samples):  # memory growth per daemon process, after start-up
+        mine = [s for s in soak.samples if s.pid == pid]
+        mine = [s for s in mine if s.t - mine[0].t >= 20.0]
+        if len(mine) >= 4:
+            q = len(mine) // 4
+            first = sum(s.rss_mb for s in mine[:q]) / q
+            last = sum(s.rss_mb for s in mine[-q:]) / q
+            print(f"  daemon pid {pid} RSS after its first 20 s: first quarter {first:.0f} MB -> last quarter "
+                  f"{last:.0f} MB ({last - first:+.0f} MB over {mine[-1].t - mine[0].t:.0f} s)")
     ok, problems = audit_runs(out, manifest, config) if manifest else (False, ["no episodes"])
     print("every planned run exactly once: " + ("YES" if ok else "NO"))
     for p in problems:
