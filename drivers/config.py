@@ -57,6 +57,17 @@ class _ArmBase(StrictModel):
     )
 
 
+class FakeArmFault(StrictModel):
+    """A scheduled fault of a simulated arm (mock only; soak tests inject faults into a daemon run as a
+    subprocess this way): from ``at_wall`` on, the next or current motion stops with a reflex
+    (``DeviceError``) until the session recovers the arm. A fault whose time passes while the arm is
+    not driven (no motion started or waited on) does not fire."""
+
+    at_wall: float = Field(gt=0.0, description="wall-clock time the fault starts, Unix s")
+    kind: Literal["reflex"] = "reflex"
+    recoverable: bool = True
+
+
 class FakeArmConfig(_ArmBase):
     """A simulated Panda that follows commanded trajectories exactly, with optional lag and noise."""
 
@@ -64,6 +75,7 @@ class FakeArmConfig(_ArmBase):
     lag: float = Field(0.0, ge=0.0, le=1.0, description="first-order tracking lag, s")
     noise: float = Field(0.0, ge=0.0, le=0.01, description="joint measurement noise std, rad")
     state_rate: float = Field(250.0, ge=100.0, le=2000.0, description="joint state rate, Hz")
+    faults: tuple[FakeArmFault, ...] = Field((), description="scheduled reflexes (mock fault injection)")
 
 
 class FrankaArmConfig(_ArmBase):
@@ -168,6 +180,14 @@ class _CameraBase(StrictModel):
     pose: Pose = Field(default_factory=Pose, description="camera optical frame in the world (hand-eye)")
 
 
+class FakeCameraStall(StrictModel):
+    """A scheduled stall of a simulated camera (mock only): no frame captured in
+    [``at_wall``, ``at_wall`` + ``seconds``), so reads time out and frame_number jumps over the window."""
+
+    at_wall: float = Field(gt=0.0, description="wall-clock time the stall starts, Unix s")
+    seconds: float = Field(gt=0.0, le=600.0, description="stall length, s")
+
+
 class FakeCameraConfig(_CameraBase):
     """A camera that renders the simulated scene with a realistic depth error model."""
 
@@ -187,6 +207,7 @@ class FakeCameraConfig(_CameraBase):
     latency_jitter: float = Field(0.0, ge=0.0, le=0.5, description="simulated extra arrival delay, uniform in "
                                   "[0, this], s")
     seed: int = 0
+    stalls: tuple[FakeCameraStall, ...] = Field((), description="scheduled stalls (mock fault injection)")
 
 
 class RealSenseCameraConfig(_CameraBase):

@@ -202,3 +202,18 @@ def test_unrecoverable_fault_then_another_run_on_the_same_station(tmp_path: Path
     summary = Session(cfg, tmp_path / "out", SimClock(), on_station=broken).run(max_seconds=60.0)
     assert summary.runs_done == 0 and len(summary.runs_failed) == 2, summary.text()
     assert no_active_files(summary)
+
+
+def test_reflex_after_the_last_waypoint_ends_the_run_done(tmp_path: Path) -> None:
+    """A reflex while the arms hold at the last waypoint (recording fills the last episode): nothing is left to
+    retry, so the run ends done with the episode cut short (this crashed on an empty motion before)."""
+    def late_reflex(station: Station) -> None:
+        station.arms["left"].inject_fault(station.clock.now() + 5.8, recoverable=True,  # type: ignore[attr-defined]
+                                          message="reflex while holding")
+
+    summary = run(tmp_path, late_reflex)
+    assert summary.faults_recovered == 1 and summary.runs_done == 1 and not summary.runs_failed, summary.text()
+    meta = metadata(summary)
+    assert meta[-1]["fault"] is True and meta[-1]["complete"] is False
+    assert all(m["complete"] and not m["fault"] for m in meta[:-1])
+    assert no_active_files(summary)

@@ -199,3 +199,53 @@ def test_physics_does_not_depend_on_query_pattern():
         return st.sim.positions
 
     assert np.array_equal(run(True), run(False))
+
+
+def test_scheduled_arm_fault_from_config():
+    """config.faults (wall-clock times) freezes the arm like inject_fault; a time already past never fires."""
+    import time
+
+    clock = SimClock(10.0)
+    st = SimStation(SimObjectConfig(category="dlo"), clock, seed=0, settle_time=0.5)
+    now = time.time()
+    cfg = FakeArmConfig(base=Pose(xyz=(0, 0.45, 0)), home=HOME["left"],
+                        faults=[{"at_wall": now - 5.0}, {"at_wall": now + 0.4, "kind": "reflex"}])
+    arm = create_arm(cfg, name="left", clock=clock, station=st)
+    arm.connect()
+    q0 = arm.read_state().q
+    t0 = clock.now()
+    arm.start_motion(JointMotion.smoothstep(q0, q0 + 0.2, 1.0))  # the past fault is skipped, not raised here
+    with pytest.raises(DeviceError, match="scheduled reflex") as e:
+        arm.wait_motion(5.0)
+    assert e.value.recoverable and clock.now() == pytest.approx(t0 + 0.4, abs=0.05)
+    arm.recover()
+    q = arm.read_state().q
+    arm.start_motion(JointMotion.smoothstep(q, q0 + 0.2, 1.0))
+    assert arm.wait_motion(2.0)  # no fault left
+
+
+def test_scheduled_camera_stall_from_config():
+    """config.stalls: no frame is captured inside the window, frame_number jumps over it."""
+    import time
+
+    clock = SimClock(10.0)
+    st = SimStation(SimObjectConfig(category="dlo"), clock, seed=0, settle_time=0.5)
+    cfg = FakeCameraConfig(width=160, height=120, pose=mock_camera_pose(), clutter=0,
+                           stalls=[{"at_wall": time.time() + 0.5, "seconds": 1.0}])
+    cam = create_camera(cfg, clock=clock, station=st)
+    cam.connect()
+    t0 = clock.now()
+    numbers = []
+    while clock.now() < t0 + 2.0:
+        numbers.append(cam.read(timeout=2.0).frame_number)
+    jumps = np.diff(numbers)
+    assert sorted(jumps)[-1] == pytest.approx(31, abs=1) and sorted(jumps)[-2] == 1  # one 1 s hole at 30 fps
+
+
+def test_fault_schedule_validation():
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="seconds"):
+        FakeCameraConfig(stalls=[{"at_wall": 1.0, "seconds": 0.0}])
+    with pytest.raises(ValidationError, match="kind"):
+        FakeArmConfig(faults=[{"at_wall": 1.0, "kind": "explode"}])

@@ -164,3 +164,13 @@ def test_random_segments_property():
         assert peak <= 1 + 1e-9
 
     check()
+
+
+def test_to_motions_with_nothing_left_to_do():
+    """Resumed at its last waypoint with the arms already there (a fault after the motion ended): no segments."""
+    last = _prog((HOME, HOME))
+    timed = time_program(last, MEDIUM, current=last.q()[0])
+    assert not timed.segments
+    left, right = timed.to_motions(100.0)
+    assert left.targets.shape == (0, 7) and left.durations.shape == (0,) and left.duration == 0.0
+    np.testing.assert_allclose(right.q[0], HOME)

@@ -233,10 +233,11 @@ class TimedProgram:
         """(left, right) JointMotion: samples at ``rate_hz``, segment targets, durations and limit scales.
 
         ``limit_scale`` is the segment's acceleration scale times the safety scale, i.e. the fraction
-        of the Panda's published acceleration limit the segment was timed with (0 for a dwell).
+        of the Panda's published acceleration limit the segment was timed with (0 for a dwell). A program
+        with nothing left to do (resumed at its last waypoint, already there) gives motions without segments.
         """
         times, q, dq = self.sample(rate_hz)
-        targets = np.stack([s.q_end for s in self.segments])
+        targets = np.array([s.q_end for s in self.segments], dtype=np.float64).reshape(len(self.segments), N)
         durations = np.array([s.actual for s in self.segments])
         scale = np.array([s.acc_scale * self.limits.safety_scale for s in self.segments])
         return tuple(  # type: ignore[return-value]

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 import zlib
 from typing import Any, Literal
 
@@ -204,11 +205,17 @@ class SimStation:
         return out
 
 
+def wall_to_clock(clock: Clock, wall: float) -> float:
+    """Clock time of wall-clock (Unix) time ``wall``, s, mapped at the current instant."""
+    return clock.now() + (wall - time.time())
+
+
 class FakeArm:
     """A simulated Panda following commanded :class:`JointMotion` s (optional first-order lag and noise).
 
     Faults: :meth:`inject_fault` freezes the arm at a given time; ``wait_motion`` then raises
-    :class:`DeviceError` and motion is refused until :meth:`recover`.
+    :class:`DeviceError` and motion is refused until :meth:`recover`. ``config.faults`` schedules
+    such faults at wall-clock times (mapped onto the clock when the arm is created).
     """
 
     def __init__(
@@ -230,6 +237,9 @@ class FakeArm:
         self._fault_at: float | None = None
         self._fault_recoverable = True
         self._fault_message = ""
+        self._schedule = sorted(
+            ((wall_to_clock(clock, f.at_wall), f.recoverable) for f in config.faults), key=lambda e: e[0]
+        )
         self._connected = False
         self._rng = np.random.default_rng(zlib.crc32(name.encode()))  # seeded per arm name
         self._lag_t: float | None = None
@@ -294,7 +304,16 @@ class FakeArm:
                 q = q + self._rng.normal(0.0, self.config.noise, 7)
         return JointState(stamp=stamp, q=q, dq=dq)
 
+    def _arm_scheduled(self, now: float) -> None:
+        """Make the next scheduled fault the pending one when none is pending; skip those already past."""
+        while self._fault_at is None and self._schedule:
+            at, recoverable = self._schedule.pop(0)
+            if at >= now:
+                self._fault_at, self._fault_recoverable = at, recoverable
+                self._fault_message = "scheduled reflex (config faults)"
+
     def _check_fault(self, now: float) -> None:
+        self._arm_scheduled(now)
         if self._fault_at is not None and now >= self._fault_at:
             raise DeviceError(f"{self.name} arm: {self._fault_message}", recoverable=self._fault_recoverable)
 
@@ -475,7 +494,8 @@ class FakeCamera:
     ``clock_drift_ppm`` from the host's); the frame reaches the host ``latency`` (+ up to
     ``latency_jitter``) after capture, when ``host_stamp`` is taken.
     Faults: :meth:`inject_fault` drops the next ``count`` frames ("drop": a gap in frame_number)
-    or makes the next read raise :class:`DeviceError` ("error").
+    or makes the next read raise :class:`DeviceError` ("error"). ``config.stalls`` schedules stalls at
+    wall-clock times (mapped onto the clock when the camera is created): no frame is captured inside one.
     """
 
     def __init__(
@@ -499,6 +519,7 @@ class FakeCamera:
         self._last_index: int | None = None
         self._drops = 0
         self._errors: list[bool] = []
+        self._stalls = [(wall_to_clock(clock, s.at_wall), s.seconds) for s in config.stalls]  # (start, length) s
         self._lock = threading.Lock()
         station.add_camera(self)
 
@@ -558,6 +579,9 @@ class FakeCamera:
                 k = max(self._last_index + 1, math.floor(now * fps + 1e-6) - self.config.queue_depth + 1)
             k += self._drops
             self._drops = 0
+            for start, length in self._stalls:  # a stalled device captures nothing inside the window
+                if start <= k / fps < start + length:
+                    k = math.ceil((start + length) * fps - 1e-6)
             t_frame = k / fps
             if t_frame - now > timeout:
                 self.clock.sleep_until(now + timeout)
