@@ -19,6 +19,9 @@ not overlap a fault window), incidents from events.jsonl / summary.json, CPU and
 time, and whether every planned run is journaled ``done`` exactly once with no duplicated episode.
 Loopback only, a free port, bounded (the plan is sized to ``--minutes``; a hard deadline stops it), and
 cleans up (kills its process groups, unmounts, removes the folder unless ``--keep``).
+
+One script (~560 lines) on purpose: the fault schedule, the processes it drives and the audit read the
+same session folder and timeline.
 """
 
 from __future__ import annotations

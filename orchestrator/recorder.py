@@ -24,6 +24,9 @@ SIGKILL) are rewritten from their readable records by :func:`recover_active`, wh
 
 An I/O error (a full disk: ENOSPC) stops the :class:`Recorder` for good: it keeps what it wrote,
 opens nothing more and reports the failure in ``Recorder.failed``; a close that failed stays failed.
+
+One module (~600 lines) on purpose: the episode writer and the recorder thread share one lifecycle per
+file (open, write, grace period, close or failure); recovery after a crash is orchestrator.recovery.
 """
 
 from __future__ import annotations

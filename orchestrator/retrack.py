@@ -13,6 +13,9 @@ Results are a new keypoint *version* beside the episodes, which are only read::
 
 Every file is written to a temporary name, fsynced and renamed, so a killed retrack leaves only whole
 files; rerunning the same command skips the runs whose files are all present and complete.
+
+One module (~650 lines) on purpose: the command, its local and Ray executors and the version files share
+one task description and one set of resume rules.
 """
 
 from __future__ import annotations

@@ -2,6 +2,7 @@
 
 Sessions run the small simulated-time mock station of tests/test_journal.py. The full-disk tests
 mount a small tmpfs (root only; skipped with the reason otherwise) or inject OSError(ENOSPC).
+One file (~550 lines) on purpose: the failure cases share the killed-writer and full-disk fixtures.
 """
 
 from __future__ import annotations
