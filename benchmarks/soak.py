@@ -101,6 +101,7 @@ class Soak:
     daemons: list[subprocess.Popen[bytes]] = field(default_factory=list)
     daemon_rcs: list[int | None] = field(default_factory=list)
     mounted: bool = False
+    tmpfs_fraction: float = 0.5  # the largest share of available memory the dataset's tmpfs may take
     worker_pids: set[int] = field(default_factory=set)
 
 
@@ -182,8 +183,9 @@ def mount_tmpfs(soak: Soak, config: Config) -> str:
     size = int(episodes * EPISODE_BYTES + 1.5e9)
     avail = next(int(line.split()[1]) * 1024 for line in Path("/proc/meminfo").read_text().splitlines()
                  if line.startswith("MemAvailable:"))
-    if size > avail / 2:
-        return f"a {size / 1e9:.1f} GB tmpfs would take over half of the {avail / 1e9:.1f} GB of free memory"
+    if size > avail * soak.tmpfs_fraction:
+        return (f"a {size / 1e9:.1f} GB tmpfs would take over {soak.tmpfs_fraction:.0%} of the {avail / 1e9:.1f} GB "
+                "of free memory (--tmpfs-fraction)")
     soak.out.mkdir(parents=True)
     r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(soak.out)],
                        capture_output=True, text=True)
@@ -545,11 +547,14 @@ def main(argv: list[str] | None = None) -> int:
                     help="keep tracking.final on (offline keypoints after each run; ~3x slower than real time "
                          "on 2 cores, so the session runs well past --minutes)")
     ap.add_argument("--keep", action="store_true", help="keep the work folder (config, log; dataset if on disk)")
+    ap.add_argument("--tmpfs-fraction", type=float, default=0.5,
+                    help="largest share of available memory the dataset's tmpfs may take (default 0.5)")
     args = ap.parse_args(argv)
     if args.minutes <= 0:
         ap.error("--minutes must be positive")
     work = Path(tempfile.mkdtemp(prefix="trackdeform-soak-"))
-    soak = Soak(args.minutes, work, work / "data", work / "soak.yaml", free_port(), work / "daemon.log")
+    soak = Soak(args.minutes, work, work / "data", work / "soak.yaml", free_port(), work / "daemon.log",
+                tmpfs_fraction=args.tmpfs_fraction)
     ok = False
     try:
         ok = run(soak, args.final)
