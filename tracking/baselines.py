@@ -11,7 +11,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from tracking.params import TrackingParams
-from tracking.tracker import FrameResult, Tracker, TrackStatus, update_grasp_indices
+from tracking.tracker import FrameResult, Tracker
 
 
 def cpd_nonrigid(
@@ -93,18 +93,12 @@ class BaselineTracker(Tracker):
     def step(self, cloud: np.ndarray, tcp: np.ndarray | None = None,
              gripper_closed: np.ndarray | None = None) -> FrameResult:
         """One frame's segmented cloud (M, 3) m -> the baseline's keypoints, scored like the full method."""
-        if self.topology is None or self.keypoints is None:
-            empty = np.zeros((0, 3))
-            return FrameResult(empty, empty, TrackStatus.UNINITIALISED, float("nan"), float("nan"), len(cloud), 0, 0,
-                               self.grasp_idx)
+        early = self._begin_step(cloud, tcp, gripper_closed)
+        if early is not None:
+            return early
+        assert self.topology is not None and self.keypoints is not None
         p = self.params
-        if tcp is not None and gripper_closed is not None:
-            if len(self.grasp_idx) != len(tcp):
-                self.grasp_idx = np.full(len(tcp), -1, np.int64)
-            self.grasp_idx = update_grasp_indices(self.grasp_idx, self.keypoints, tcp, gripper_closed, p.grasp_gate_m)
         na = len(self.topology.anchor_idx)
-        if len(cloud) < p.min_object_points:
-            return self._result(self.keypoints, cloud, 0, na, force_bad=True)
         tree = cKDTree(cloud)
         if self.method == "cpd":
             X = cpd_nonrigid(self.keypoints, cloud, iterations=p.track_iterations + 10, **self.cpd)

@@ -312,20 +312,12 @@ class Tracker:
         Grasp indices follow the grippers (regrasp on closing). After ``lost_after_frames`` bad frames
         the status is LOST and the tracker resets: the caller must initialise again.
         """
-        if self.topology is None or self.keypoints is None:
-            empty = np.zeros((0, 3))
-            return FrameResult(
-                empty, empty, TrackStatus.UNINITIALISED, float("nan"), float("nan"), len(cloud), 0, 0, self.grasp_idx
-            )
+        early = self._begin_step(cloud, tcp, gripper_closed)
+        if early is not None:
+            return early
+        assert self.topology is not None and self.keypoints is not None
         p = self.params
-        if tcp is not None and gripper_closed is not None:
-            if len(self.grasp_idx) != len(tcp):
-                self.grasp_idx = np.full(len(tcp), -1, np.int64)
-            self.grasp_idx = update_grasp_indices(self.grasp_idx, self.keypoints, tcp, gripper_closed, p.grasp_gate_m)
         na = len(self.topology.anchor_idx)
-        self.last_timings_ms = {}
-        if len(cloud) < p.min_object_points:
-            return self._result(self.keypoints, cloud, 0, na, force_bad=True)
         t0 = time.perf_counter()
         held = None
         if tcp is not None and gripper_closed is not None:
@@ -338,6 +330,26 @@ class Tracker:
         res = self._result(X, tree, matched, na)
         self.last_timings_ms = {"anchors": 1e3 * (t1 - t0), "solve": 1e3 * (time.perf_counter() - t1)}
         return res
+
+    def _begin_step(
+        self, cloud: np.ndarray, tcp: np.ndarray | None, gripper_closed: np.ndarray | None
+    ) -> FrameResult | None:
+        """What every per-frame update shares: no keypoints before initialisation, grasp indices follow the
+        grippers, too small a cloud keeps the keypoints as a bad frame. None when the update is to run."""
+        if self.topology is None or self.keypoints is None:
+            empty = np.zeros((0, 3))
+            return FrameResult(
+                empty, empty, TrackStatus.UNINITIALISED, float("nan"), float("nan"), len(cloud), 0, 0, self.grasp_idx
+            )
+        p = self.params
+        if tcp is not None and gripper_closed is not None:
+            if len(self.grasp_idx) != len(tcp):
+                self.grasp_idx = np.full(len(tcp), -1, np.int64)
+            self.grasp_idx = update_grasp_indices(self.grasp_idx, self.keypoints, tcp, gripper_closed, p.grasp_gate_m)
+        self.last_timings_ms = {}
+        if len(cloud) < p.min_object_points:
+            return self._result(self.keypoints, cloud, 0, len(self.topology.anchor_idx), force_bad=True)
+        return None
 
     def _result(
         self, X: np.ndarray, cloud: np.ndarray | cKDTree, matched: int, total: int, force_bad: bool = False
