@@ -27,6 +27,7 @@ same session folder and timeline.
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import os
 import shutil
@@ -235,14 +236,22 @@ def inject(soak: Soak, f: Fault, daemon: subprocess.Popen[bytes], config: Config
             f.skipped = "no tmpfs (see above)"
             return daemon
         filler = soak.out / "soak_filler.bin"
-        st = os.statvfs(soak.out)
-        fill = st.f_bavail * st.f_frsize - int(MIN_FREE_GB * 1e9 / 2)
-        with filler.open("wb") as fh:  # a sparse file takes no tmpfs pages: write real bytes
-            block = b"\0" * (1 << 24)
-            left = fill
-            while left > 0:
-                fh.write(block[:min(left, len(block))])
-                left -= len(block)
+        fill = 0
+        block = b"\0" * (1 << 24)
+        with filler.open("wb", buffering=0) as fh:  # unbuffered real bytes (a sparse file takes no tmpfs pages)
+            # fill until less than half of min_free_gb is left; the session writes meanwhile, so the free
+            # space is read again for every block and a disk that fills first just ends the filling
+            while True:
+                st = os.statvfs(soak.out)
+                left = st.f_bavail * st.f_frsize - int(MIN_FREE_GB * 1e9 / 2)
+                if left <= 0:
+                    break
+                try:
+                    fill += fh.write(block[:min(left, len(block))]) or 0
+                except OSError as e:
+                    if e.errno != errno.ENOSPC:
+                        raise
+                    break
         time.sleep(DISK_FULL_SECONDS)
         filler.unlink()
         f.window = (now, time.monotonic() + 8.0)
