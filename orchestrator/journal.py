@@ -300,13 +300,20 @@ class Journal:
 LOCKED_HINT = "wait for it to finish, or record to another folder with --out DIR"
 
 
-def _lock(path: Path) -> int:
-    """Open ``path`` (created if missing) and take its exclusive lock; JournalError when a session holds it."""
-    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o644)
+def _flock_or_close(fd: int) -> bool:
+    """Take the exclusive lock on ``fd`` without waiting; False (and ``fd`` closed) when another holds it."""
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:
         os.close(fd)
+        return False
+    return True
+
+
+def _lock(path: Path) -> int:
+    """Open ``path`` (created if missing) and take its exclusive lock; JournalError when a session holds it."""
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o644)
+    if not _flock_or_close(fd):
         raise JournalError(
             f"{path}: another session is recording into this folder now (the journal is locked); {LOCKED_HINT}"
         ) from None
@@ -329,10 +336,7 @@ class FolderLock:
             fd = os.open(self.path, os.O_RDONLY)
         except FileNotFoundError:
             return self
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
+        if not _flock_or_close(fd):
             raise JournalError(
                 f"{self.path.parent}: a live session is recording into this folder (its journal is locked); "
                 "its unfinished files are being written, not left by a crash. Run this after the session ends"
