@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from orchestrator.bus import free_port  # noqa: E402
 from orchestrator.progress import Progress  # noqa: E402
-from orchestrator.report import build_report  # noqa: E402
+from orchestrator.report import build_report, group_runs  # noqa: E402
 from tdrecord.digest import DIGEST_SUFFIX  # noqa: E402
 
 
@@ -32,6 +32,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("session", nargs="?", help="a recorded session folder (default: record one)")
     ap.add_argument("--seconds", type=float, default=20.0, help="length of the recorded session, s")
+    ap.add_argument("--jobs", default="1,2", help="report processes to compare (build_report's jobs), comma-separated")
     a = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_report_"))
     session = Path(a.session) if a.session else tmp / "session"
@@ -40,33 +41,44 @@ def main() -> None:
                         "--out", str(session), "--port", str(free_port()), "--no-tracking"], check=True,
                        capture_output=True, cwd=Path(__file__).resolve().parent.parent)
     episodes = len(list(session.glob("episode_*.mcap")))
+    runs = group_runs(sorted(session.glob("episode_*.mcap")))
     size = sum(p.stat().st_size for p in session.glob("episode_*.mcap"))
     print(f"session {session}: {episodes} episodes, {size / 1e9:.2f} GB")
     digests = sorted(session.glob(f"episode_*{DIGEST_SUFFIX}"))
     print(f"{len(digests)} episode digests ({sum(p.stat().st_size for p in digests) / 1e6:.1f} MB)")
     aside = tmp / "digests_aside"
     aside.mkdir()
-    cases = [("as recorded, digests", False, False)] if digests else []
-    cases += [("as recorded, MCAP only", False, True), ("with --track-missing", True, False)]
+    cases = []
+    for jobs in (int(j) for j in a.jobs.split(",")):
+        cases += [(f"as recorded, digests, {jobs} job(s)", False, False, jobs)] if digests else []
+        cases += [(f"as recorded, MCAP only, {jobs} job(s)", False, True, jobs)]
+    cases += [("with --track-missing, 1 job", True, False, 1)]
     # warm-up (imports, matplotlib's font cache, page cache of the files): not counted
-    build_report(session, tmp / "report_warmup", progress=Progress(enabled=False))
-    for label, track, hide in cases:
+    build_report(session, tmp / "report_warmup", progress=Progress(enabled=False), jobs=1)
+    for label, track, hide, jobs in cases:
         if hide:  # the episodes' small channels read from the MCAP files (every chunk decompressed)
             for p in digests:
                 p.rename(aside / p.name)
         try:
             t0, c0 = time.monotonic(), time.process_time()
-            build_report(session, tmp / f"report_{track}_{hide}", track_missing=track,
+            k0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            build_report(session, tmp / f"report_{track}_{hide}_{jobs}", track_missing=track, jobs=jobs,
                          progress=Progress(enabled=False))
-            wall, cpu = time.monotonic() - t0, time.process_time() - c0
+            k1 = resource.getrusage(resource.RUSAGE_CHILDREN)  # the job processes, joined by build_report
+            wall = time.monotonic() - t0
+            cpu = time.process_time() - c0 + (k1.ru_utime + k1.ru_stime) - (k0.ru_utime + k0.ru_stime)
         finally:
             for p in digests:
                 if (aside / p.name).exists():
                     (aside / p.name).rename(p)
         rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        child = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
         per = max(1, episodes)
-        print(f"{label:23s}: {wall:6.1f} s wall, {wall / per:5.2f} s/episode, {cpu / per:5.2f} s CPU/episode, "
-              f"peak RSS {rss:6.0f} MB" + ("" if track else f", 1 h (720 episodes) ~ {720 * cpu / per:.0f} s CPU"))
+        n = min(jobs, len(runs))
+        hour = f", 1 h (720 episodes) ~ {720 * cpu / per:.0f} s CPU, ~ {720 * cpu / per / n:.0f} s on {n} core(s)"
+        print(f"{label:34s}: {wall:6.1f} s wall, {wall / per:5.2f} s/episode, {cpu / per:5.2f} s CPU/episode "
+              f"(job processes included), peak RSS {rss:4.0f} MB (a job process {child:4.0f} MB)"
+              + ("" if track else hour), flush=True)
 
 
 if __name__ == "__main__":

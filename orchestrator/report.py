@@ -20,14 +20,16 @@ import argparse
 import inspect
 import json
 import math
+import os
 import sys
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import orjson
 
 from orchestrator.progress import Progress, bar
 from tdcommon.wire import edges_from_json, points_from_json
@@ -75,6 +77,7 @@ class RunData:
     incomplete: int = 0
     faults: int = 0
     bytes: int = 0
+    t_trajectory: list[float] = field(default_factory=list)  # t of the frames kept for Fig. 1 (build_run)
 
     @property
     def label(self) -> str:
@@ -114,14 +117,23 @@ def _camera_topics(topics: set[str]) -> tuple[str, str]:
     return f"/cam/{cams[0]}/color", f"/cam/{cams[0]}/frame_info"
 
 
-def _gt_error(kp: np.ndarray, gt: dict[str, Any]) -> float:
+def _gt_errors(frames: list[tuple[int, np.ndarray, dict[str, Any]]], out: list[float]) -> None:
+    """GT error (mm) of recorded keypoints: ``out[i]`` for every (i, keypoints (N, 3) m, ground-truth JSON)
+    in ``frames``, computed in batches of frames whose keypoints and samples have the same shapes."""
     from tdcommon.wire import ground_truth_from_json
-    from tracking.metrics import surface_error_mm
+    from tracking.metrics import surface_errors_mm
 
-    g = ground_truth_from_json(gt)
-    if not len(g.centreline):
-        return float("nan")
-    return surface_error_mm(kp, g.centreline, g.radius, polyline=g.category != "cloth")
+    groups: dict[tuple, list[tuple[int, np.ndarray, np.ndarray]]] = {}
+    for i, X, d in frames:
+        g = ground_truth_from_json(d)
+        if len(g.centreline):
+            key = (X.shape, g.centreline.shape, g.radius, g.category != "cloth")
+            groups.setdefault(key, []).append((i, X, g.centreline))
+    for (_, _, radius, polyline), items in groups.items():
+        e = surface_errors_mm(np.stack([x for _, x, _ in items]), np.stack([c for _, _, c in items]), radius,
+                              polyline=polyline)
+        for (i, _, _), v in zip(items, e, strict=True):
+            out[i] = float(v)
 
 
 def _small_channels(path: Path) -> Iterator[tuple[str, int, dict[str, Any]]]:
@@ -143,12 +155,13 @@ def _small_channels(path: Path) -> Iterator[tuple[str, int, dict[str, Any]]]:
         for _, channel, msg in reader.iter_messages(
             topics=[t for t in (info, "/keypoints", "/ground_truth/keypoints") if t in topics]
         ):
-            yield channel.topic, int(msg.log_time), json.loads(msg.data)
+            yield channel.topic, int(msg.log_time), orjson.loads(msg.data)
 
 
 def read_recorded(run: RunData) -> None:
     """Fill ``run`` from its episodes' ``/keypoints`` (and ``/ground_truth/keypoints``), one file at a time."""
     t0: float | None = None
+    pending_gt: list[tuple[int, np.ndarray, dict[str, Any]]] = []
     for path in run.episodes:
         kps: dict[int, dict[str, Any]] = {}
         gts: dict[int, dict[str, Any]] = {}
@@ -180,9 +193,13 @@ def read_recorded(run: RunData) -> None:
             run.t.append(float(d.get("stamp", 0.0)) - (t0 or 0.0))
             run.abs_mm.append(float(d["abs_mm"]))
             run.cd_mm.append(float(d["cd_mm"]))
-            run.gt_mm.append(_gt_error(X, gts[fn]) if fn in gts else float("nan"))
+            if fn in gts:
+                pending_gt.append((len(run.gt_mm), X, gts[fn]))
+            run.gt_mm.append(float("nan"))
             run.keypoints.append(X)
             run.frame_numbers.append(fn)
+        _gt_errors(pending_gt, run.gt_mm)  # per episode: the ground truth of one file at a time is kept
+        pending_gt.clear()
     if run.keypoints:
         run.source = "recorded"
 
@@ -338,6 +355,8 @@ class Fig5:
             ax.autoscale_view()
         self.fig.suptitle(run.label, fontsize=9)
         self.fig.savefig(path, dpi=90)
+        if self.fig.get_layout_engine() is not None:  # laid out once: the layout was half of every later save
+            self.fig.set_layout_engine("none")
 
     def close(self) -> None:
         import matplotlib.pyplot as plt
@@ -487,6 +506,124 @@ def collection_summary(session: Path, runs: list[RunData], active: list[Path]) -
 
 
 # ---------------------------------------------------------------------- the page
+@dataclass
+class RunReport:
+    """What building one run's part of the page returns to the page (picklable: runs are built in worker
+    processes): the run's per-frame scalars (keypoints dropped), its view for the template, its row of the
+    keypoint-version table, a note, and up to ``TRAJECTORY_SAMPLES`` frames of keypoints for Fig. 1."""
+
+    run: RunData
+    view: dict[str, Any]
+    version_row: dict[str, Any] | None = None
+    note: str | None = None
+    trajectory: list[np.ndarray] = field(default_factory=list)
+
+
+TRAJECTORY_SAMPLES = 120  # frames of a run kept for its object's Fig. 1 (plot_trajectory draws at most these)
+_FIG5: list[Fig5] = []  # one Fig5 per process, redrawn for every run it builds
+
+
+def build_run(n: int, run: RunData, out: Path, config: Any, track_missing: bool, thumbnails: int,
+              has_versions: bool, session: Path, tick: Callable[[int], None] | None = None) -> RunReport:
+    """Read (or, with ``track_missing``, track) one run and write its Fig. 5 plot and thumbnails into
+    ``out/images``; ``n`` is the run's place on the page (its file names)."""
+    import cv2
+
+    read_recorded(run)
+    if run.source == "none" and track_missing:
+        if config is None:
+            from orchestrator.config import DEFAULT_CONFIG, load_config
+
+            config = load_config(DEFAULT_CONFIG)
+        track_offline(run, config, tick)
+    rep = RunReport(run, {"label": run.label, "episodes": len(run.episodes), "frames": run.frames,
+                          "tracked": len(run.t), "source": run.source, "statuses": run.statuses,
+                          "plot": None, "thumbs": []})
+    if has_versions:  # keypoint versions made by `trackdeform retrack`, against this run's keypoints and each other
+        from orchestrator.retrack import version_differences
+
+        diff = version_differences(session, run.episodes, run.frame_numbers, run.keypoints)["rows"]
+        rep.version_row = {"run": run.label, "source": run.source, "cells": [
+            (f"{_fmt(d['vs_live_mm'], 3)} ({d['vs_live_frames']})", f"{_fmt(d['vs_previous_mm'], 3)} "
+             f"({d['vs_previous_frames']})") for d in diff]}
+    view = rep.view
+    if run.source == "none":
+        rep.note = (f"{run.label}: no tracked keypoints in its episodes"
+                    + ("" if track_missing else " (tracking off or the worker did not keep up: "
+                                                "pass --track-missing to track it offline)"))
+    else:
+        from tdrecord import read_calibration
+        from tracking.metrics import sequence_summary
+
+        m = sequence_summary(np.asarray(run.abs_mm), np.asarray(run.cd_mm))
+        g = np.asarray(run.gt_mm)
+        g = g[np.isfinite(g)]
+        view.update({k: _fmt(v, 1 if k.endswith("10") or k.endswith("5") else 2) for k, v in m.items()})
+        view["GT"] = _fmt(float(np.sqrt(np.mean(g**2)))) if len(g) else "–"
+        name = f"run{n:03d}_metrics.png"
+        if not _FIG5:
+            import matplotlib
+
+            matplotlib.use("Agg")  # also in a worker process: files only, no display
+            _FIG5.append(Fig5())
+        _FIG5[0].save(run, out / IMAGES / name)
+        view["plot"] = f"{IMAGES}/{name}"
+        cal = read_calibration(run.episodes[0])
+        for k in _thumbnail_frames(run, thumbnails):
+            fn = run.frame_numbers[k]
+            if fn not in run.log_times:
+                continue
+            path, log_time, key_time = run.log_times[fn]
+            color = read_color_at(path, log_time, key_time)
+            img = draw_thumbnail(color if color is not None else read_color(path, fn), run.keypoints[k],
+                                 run.edges, cal.K, cal.T_world_cam, THUMB_WIDTH)
+            tname = f"run{n:03d}_frame{fn}.png"
+            cv2.imwrite(str(out / IMAGES / tname), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+            view["thumbs"].append({"src": f"{IMAGES}/{tname}", "caption": f"frame {fn}, t = {run.t[k]:.1f} s"})
+        idx = np.unique(np.linspace(0, len(run.keypoints) - 1, min(len(run.keypoints), TRAJECTORY_SAMPLES))
+                        .round().astype(int))
+        rep.trajectory = [run.keypoints[i] for i in idx]
+        run.t_trajectory = [run.t[i] for i in idx]
+    run.keypoints, run.frame_numbers, run.log_times = [], [], {}  # only the scalars go back to the page
+    return rep
+
+
+def _build_runs(runs: list[RunData], jobs: int, args: tuple[Any, ...], progress: Progress, files: int
+                ) -> Iterator[RunReport]:
+    """Every run's RunReport in page order: in this process (``jobs`` 1) or in ``jobs`` worker processes,
+    the runs being independent (one Fig. 5 plot, thumbnails decoded from their own episodes)."""
+    done = 0
+    if jobs <= 1:
+        try:
+            for n, run in enumerate(runs):
+                progress.update(f"{bar(done, files)} | {run.label}", force=True)
+                yield build_run(n, run, *args, tick=lambda i, d=done, f=run.frames, lbl=run.label: progress.update(
+                    f"{bar(d, files)} | {lbl}: tracking offline, frame {i}/{f}"))
+                done += len(run.episodes)
+        finally:
+            while _FIG5:
+                _FIG5.pop().close()
+        return
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    results: dict[int, RunReport] = {}
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = {pool.submit(build_run, n, run, *args): n for n, run in enumerate(runs)}
+        progress.update(f"{bar(0, files)} | {len(runs)} runs on {jobs} processes", force=True)
+        nxt = 0
+        from concurrent.futures import as_completed
+
+        for fut in as_completed(futures):
+            n = futures[fut]
+            results[n] = fut.result()
+            done += len(runs[n].episodes)
+            progress.update(f"{bar(done, files)} | {runs[n].label}", force=True)
+            while nxt in results:  # hand them on in page order, keeping only those not yet handed on
+                yield results.pop(nxt)
+                nxt += 1
+
+
 def build_report(
     session: Path,
     out: Path,
@@ -494,14 +631,16 @@ def build_report(
     config: Any = None,
     track_missing: bool = False,
     thumbnails: int = 4,
+    jobs: int | None = None,
     progress: Progress | None = None,
 ) -> Path:
     """Write ``out/report.html`` and ``out/images/*.png`` for a session folder; returns the page's path.
 
     track_missing: runs whose episodes hold no tracked keypoints (tracking off, or a worker that did not
     keep up) are tracked offline with ``config``'s tracking section (else they appear without metrics).
+    jobs: processes building runs side by side (default: one per core, never more than the runs; 1 builds
+    them in this process).
     """
-    import cv2
     import jinja2
     import matplotlib
 
@@ -518,88 +657,41 @@ def build_report(
     progress = progress or Progress()
     t_start = time.monotonic()
     runs = group_runs(files)
-    done = 0
-    from orchestrator.retrack import list_versions, version_differences
+    from orchestrator.retrack import list_versions
 
-    versions, version_rows = list_versions(session), []
-    fig5: Fig5 | None = None
-    per_object: dict[str, RunData] = {}
-    run_views = []
-    notes = []
-    for n, run in enumerate(runs):
-        progress.update(f"{bar(done, len(files))} | {run.label}", force=True)
-        read_recorded(run)
-        if run.source == "none" and track_missing:
-            if config is None:
-                from orchestrator.config import DEFAULT_CONFIG, load_config
-
-                config = load_config(DEFAULT_CONFIG)
-            frames = run.frames
-            track_offline(run, config, lambda i, d=done, f=frames, lbl=run.label: progress.update(
-                f"{bar(d, len(files))} | {lbl}: tracking offline, frame {i}/{f}"))
-        done += len(run.episodes)
-        if versions:  # keypoint versions made by `trackdeform retrack`, against this run's keypoints and each other
-            diff = version_differences(session, run.episodes, run.frame_numbers, run.keypoints)["rows"]
-            version_rows.append({"run": run.label, "source": run.source, "cells": [
-                (f"{_fmt(d['vs_live_mm'], 3)} ({d['vs_live_frames']})", f"{_fmt(d['vs_previous_mm'], 3)} "
-                 f"({d['vs_previous_frames']})") for d in diff]})
-        view: dict[str, Any] = {"label": run.label, "episodes": len(run.episodes), "frames": run.frames,
-                                "tracked": len(run.t), "source": run.source, "statuses": run.statuses,
-                                "plot": None, "thumbs": []}
-        if run.source == "none":
-            notes.append(f"{run.label}: no tracked keypoints in its episodes"
-                         + ("" if track_missing else " (tracking off or the worker did not keep up: "
-                                                      "pass --track-missing to track it offline)"))
-        else:
-            from tracking.metrics import sequence_summary
-
-            m = sequence_summary(np.asarray(run.abs_mm), np.asarray(run.cd_mm))
-            g = np.asarray(run.gt_mm)
-            g = g[np.isfinite(g)]
-            view.update({k: _fmt(v, 1 if k.endswith("10") or k.endswith("5") else 2) for k, v in m.items()})
-            view["GT"] = _fmt(float(np.sqrt(np.mean(g**2)))) if len(g) else "–"
-            name = f"run{n:03d}_metrics.png"
-            fig5 = fig5 or Fig5()
-            fig5.save(run, out / IMAGES / name)
-            view["plot"] = f"{IMAGES}/{name}"
-            if run.object not in per_object:
-                per_object[run.object] = run
-                tname = f"trajectory_{_safe(run.object)}.png"
-                plot_trajectory(run, out / IMAGES / tname)
-            from tdrecord import read_calibration
-
-            cal = read_calibration(run.episodes[0])
-            picks = _thumbnail_frames(run, thumbnails)
-            for k in picks:
-                fn = run.frame_numbers[k]
-                if fn not in run.log_times:
-                    continue
-                path, log_time, key_time = run.log_times[fn]
-                color = read_color_at(path, log_time, key_time)
-                img = draw_thumbnail(color if color is not None else read_color(path, fn), run.keypoints[k],
-                                     run.edges, cal.K, cal.T_world_cam, THUMB_WIDTH)
-                tname = f"run{n:03d}_frame{fn}.png"
-                cv2.imwrite(str(out / IMAGES / tname), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-                view["thumbs"].append({"src": f"{IMAGES}/{tname}", "caption": f"frame {fn}, t = {run.t[k]:.1f} s"})
-        run_views.append(view)
-        if run is not per_object.get(run.object):  # keep only what the page still needs
-            run.keypoints, run.frame_numbers, run.log_times = [], [], {}
-    if fig5 is not None:
-        fig5.close()
-    progress.update(f"{bar(done, len(files))} | writing the page", force=True)
-    trajectories = [{"object": o, "src": f"{IMAGES}/trajectory_{_safe(o)}.png", "run": r.label}
-                    for o, r in per_object.items()]
+    versions = list_versions(session)
+    jobs = max(1, min(len(runs), jobs if jobs is not None else (os.cpu_count() or 1)))
+    per_object: dict[str, RunReport] = {}
+    run_views, version_rows, notes = [], [], []
+    built: list[RunData] = []
+    args = (out, config, track_missing, thumbnails, bool(versions), session)
+    for rep in _build_runs(runs, jobs, args, progress, len(files)):
+        built.append(rep.run)
+        run_views.append(rep.view)
+        if rep.version_row is not None:
+            version_rows.append(rep.version_row)
+        if rep.note:
+            notes.append(rep.note)
+        if rep.trajectory and rep.run.object not in per_object:
+            per_object[rep.run.object] = rep
+        rep.trajectory = rep.trajectory if per_object.get(rep.run.object) is rep else []
+    trajectories = []
+    for o, rep in per_object.items():
+        tname = f"trajectory_{_safe(o)}.png"
+        plot_trajectory(replace(rep.run, keypoints=rep.trajectory, t=rep.run.t_trajectory), out / IMAGES / tname)
+        trajectories.append({"object": o, "src": f"{IMAGES}/{tname}", "run": rep.run.label})
+    progress.update(f"{bar(len(files), len(files))} | writing the page", force=True)
     env = jinja2.Environment(loader=jinja2.PackageLoader("orchestrator", "templates"),
                              autoescape=jinja2.select_autoescape(["html", "j2"]))
     html = env.get_template("report.html.j2").render(
         session=str(session.resolve()), generated=time.strftime("%Y-%m-%d %H:%M:%S"),
-        quality=quality_rows(runs), collection=collection_summary(session, runs, active), runs=run_views,
+        quality=quality_rows(built), collection=collection_summary(session, built, active), runs=run_views,
         trajectories=trajectories, notes=notes, versions=versions, version_rows=version_rows,
         seconds=f"{time.monotonic() - t_start:.1f}",
     )
     page = out / "report.html"
     page.write_text(html, encoding="utf-8")
-    progress.update(f"{bar(done, len(files))} | done in {time.monotonic() - t_start:.1f} s", force=True)
+    progress.update(f"{bar(len(files), len(files))} | done in {time.monotonic() - t_start:.1f} s", force=True)
     progress.done()
     return page
 
@@ -637,7 +729,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path(args.session) / "report"
     try:
         page = build_report(Path(args.session), out, config=config, track_missing=args.track_missing,
-                            thumbnails=args.thumbnails)
+                            thumbnails=args.thumbnails, jobs=args.jobs)
     except ReportError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -654,4 +746,5 @@ def register(sub: Any) -> None:
                    help="track runs recorded without keypoints offline (slow: every frame is tracked)")
     p.add_argument("--config", help="tracking parameters for --track-missing (default: the mock config)")
     p.add_argument("--thumbnails", type=int, default=4, help="thumbnails per run")
+    p.add_argument("--jobs", type=int, help="processes building runs side by side (default: one per core)")
     p.set_defaults(func=cmd_report)

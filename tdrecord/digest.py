@@ -16,6 +16,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+import orjson
+
 DIGEST_SUFFIX = ".digest.json.gz"
 DIGEST_FORMAT = "trackdeform-digest/1"
 
@@ -62,8 +64,8 @@ def read_digest(episode: Path) -> list[tuple[str, int, dict[str, Any]]] | None:
     none or it does not belong to this episode / cannot be read (then read the MCAP file instead)."""
     path = digest_path(episode)
     try:
-        d = json.loads(gzip.decompress(path.read_bytes()))
-    except (OSError, EOFError, ValueError):
+        d = orjson.loads(gzip.decompress(path.read_bytes()))  # ~4x json's speed: digests are mostly ground truth
+    except (OSError, EOFError, ValueError):  # orjson.JSONDecodeError is a ValueError
         return None
     if not isinstance(d, dict) or d.get("format") != DIGEST_FORMAT or d.get("episode") != Path(episode).name:
         return None

@@ -167,3 +167,26 @@ def test_report_of_a_sim_time_demo_opens_in_chromium(tmp_path: Path, port: int) 
     seen = browser_check(page, tmp_path)
     assert seen["errors"] == [] and seen["broken"] == [], seen
     assert seen["images"] == 1 + 1 + 4  # trajectory, per-run plot, 4 thumbnails
+
+
+def test_report_built_in_two_processes_equals_one(tmp_path: Path) -> None:
+    """jobs=2 builds the runs in worker processes: the same page (tables, plots, thumbnails) as in-process."""
+    session = tmp_path / "s"
+    session.mkdir()
+    _, _, _, intr = _session(session)
+    X = np.stack([np.linspace(-0.1, 0.1, 5), np.full(5, 0.02), np.zeros(5)], axis=1)
+    meta = {"object": "rope", "category": "dlo", "program": "rope_swing", "speed": "medium", "repeat": 1,
+            "run_index": 1, "attempt": 1, "plan_pass": 0, "session_started": "2025-01-01T00:00:00Z",
+            "calibration": {"K": intr.K.tolist(), "width": W, "height": H, "T_world_cam": T_CAM.tolist()}}
+    w = EpisodeWriter(session / "episode_000002.mcap", "cam0")
+    for n in range(20, 32):
+        w.write_frame(_frame(n, intr), T_CAM)
+        w.write_keypoints(_kp_message(n, X, 0.2 * n, 0.3 * n, "tracking"), 10.0 + n / 30.0)
+    w.close({**meta, "episode_index": 2, "complete": True, "fault": False})
+    pages = [build_report(session, tmp_path / f"r{jobs}", thumbnails=2, jobs=jobs) for jobs in (1, 2)]
+    one, two = (re.sub(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d|\d+\.\d s", "", p.read_text()) for p in pages)
+    assert one == two
+    imgs = re.findall(r'<img src="([^"]+)"', one)
+    assert len(imgs) == 1 + 2 + 2 * 2  # one trajectory (one object), two runs' plots and thumbnails
+    assert all((pages[1].parent / i).is_file() for i in imgs)
+    assert "rope · rope_swing · medium · #2" in one and "rope · rope_swing · fast · #1" in one

@@ -13,6 +13,7 @@ from tracking.metrics import (
     percent_below,
     sequence_summary,
     surface_error_mm,
+    surface_errors_mm,
 )
 
 
@@ -69,3 +70,19 @@ def test_branched_gt_is_measured_to_each_chain_not_the_join():
     assert surface_error_mm(on_false_segment, samples, 0.0, polyline=True) == pytest.approx(75.0, abs=1e-6)
     on_branch = np.array([[0.15, 0.1, 0.004]])
     assert surface_error_mm(on_branch, samples, 0.003, polyline=True) == pytest.approx(1.0, abs=1e-6)
+
+
+@pytest.mark.parametrize("polyline", [True, False])
+def test_batched_gt_errors_equal_the_per_frame_metric(polyline: bool) -> None:
+    """surface_errors_mm over F frames (chunked, jumps masked) gives surface_error_mm of each frame."""
+    rng = np.random.default_rng(3)
+    F, N, M = 45, 12, 90
+    s = np.linspace(0.0, 1.0, M)
+    samples = np.stack([np.c_[s, 0.2 * np.sin(3 * s + 0.1 * f), 0.05 * s] for f in range(F)])
+    samples[:, 60:] += [0.0, 0.4, 0.1]  # a second chain (a branch): no segment may join the two
+    X = samples[:, ::7][:, :N] + rng.normal(0.0, 0.01, (F, N, 3))
+    X[:, 0] = samples[:, 59] + 0.5 * (samples[:, 60] - samples[:, 59])  # on the false join segment
+    want = [surface_error_mm(X[i], samples[i], 0.003, polyline=polyline) for i in range(F)]
+    got = surface_errors_mm(X, samples, 0.003, polyline=polyline, chunk=16)
+    assert got.shape == (F,)
+    assert np.allclose(got, want, atol=1e-9)

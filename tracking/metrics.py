@@ -79,6 +79,40 @@ def surface_error_mm(X: np.ndarray, samples: np.ndarray, radius: float, polyline
     return float(1e3 * np.sqrt(np.mean(e**2)))
 
 
+def surface_errors_mm(X: np.ndarray, samples: np.ndarray, radius: float, polyline: bool = False,
+                      chunk: int = 32) -> np.ndarray:
+    """:func:`surface_error_mm` of F frames at once (the report's GT column over a whole run): (F,) mm.
+
+    X: (F, N, 3) m keypoints; samples: (F, M, 3) m the frames' centreline / mid-surface samples. A 1D
+    object's chains are its consecutive samples without the jumps :func:`split_chains` cuts at; frames go
+    through in chunks of ``chunk`` so the (chunk, N, M) work arrays stay small.
+    """
+    X, S = np.asarray(X, np.float64), np.asarray(samples, np.float64)
+    out = np.empty(len(X))
+    for lo in range(0, len(X), chunk):
+        x, s = X[lo:lo + chunk], S[lo:lo + chunk]
+        if polyline and S.shape[1] >= 2:
+            a, ab = s[:, :-1], np.diff(s, axis=1)  # (C, M-1, 3) segments
+            L2 = np.einsum("cmk,cmk->cm", ab, ab)
+            if S.shape[1] >= 3:  # no segment across a jump between chains (split_chains' rule)
+                step = np.sqrt(L2)
+                jump = step > 4.0 * np.median(step, axis=1, keepdims=True)
+            else:
+                jump = np.zeros(L2.shape, bool)
+            ap = x[:, :, None, :] - a[:, None]  # (C, N, M-1, 3)
+            t = np.clip(np.einsum("cnmk,cmk->cnm", ap, ab) / np.maximum(L2, 1e-18)[:, None], 0.0, 1.0)
+            d = ap - t[..., None] * ab[:, None]
+            d2 = np.einsum("cnmk,cnmk->cnm", d, d)
+            d2[np.broadcast_to(jump[:, None], d2.shape)] = np.inf
+            dist = np.sqrt(d2.min(axis=2))
+        else:
+            diff = x[:, :, None, :] - s[:, None]
+            dist = np.sqrt(np.einsum("cnmk,cnmk->cnm", diff, diff).min(axis=2))
+        e = np.maximum(0.0, dist - radius)
+        out[lo:lo + chunk] = 1e3 * np.sqrt(np.mean(e**2, axis=1))
+    return out
+
+
 def anchor_error_mm(pred: np.ndarray, true: np.ndarray) -> float:
     """Mean distance (mm) between predicted anchors (A, 3) m and true anchors (B, 3) m matched by Hungarian."""
     if len(pred) == 0 or len(true) == 0:
