@@ -6,8 +6,10 @@ then have no keypoints, so the page is built twice: as recorded (reading /keypoi
 the streaming cost every report pays) and with ``--track-missing`` (offline tracking, every frame).
 With the episodes' digests (``tdrecord.digest``, written by the recorder) the page is built as recorded
 twice: reading the digests, and with them moved aside (every MCAP chunk decompressed). Printed: wall s,
-s and CPU s per episode, peak RSS of this process (MB), and the CPU scaled to 720 episodes (1 h at 5 s
-episodes).
+s and CPU s per episode (the job processes' included), peak RSS of this process and of a job process (MB),
+the CPU scaled to 720 episodes (1 h at 5 s episodes) and, for ``--jobs`` above 1, the 1 h wall estimated as
+the job processes' start-up (this build's wall minus the 1-job wall shared out) plus the 1-job wall per
+episode x 720 shared by the jobs (a short session is mostly start-up).
 """
 
 from __future__ import annotations
@@ -49,6 +51,7 @@ def main() -> None:
     aside = tmp / "digests_aside"
     aside.mkdir()
     cases = []
+    walls: dict[tuple[bool, bool, int], float] = {}
     for jobs in (int(j) for j in a.jobs.split(",")):
         cases += [(f"as recorded, digests, {jobs} job(s)", False, False, jobs)] if digests else []
         cases += [(f"as recorded, MCAP only, {jobs} job(s)", False, True, jobs)]
@@ -75,11 +78,18 @@ def main() -> None:
         child = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
         per = max(1, episodes)
         n = min(jobs, len(runs))
-        hour = f", 1 h (720 episodes) ~ {720 * cpu / per:.0f} s CPU, ~ {720 * cpu / per / n:.0f} s on {n} core(s)"
+        walls[(track, hide, n)] = wall
+        hour = f", 1 h (720 episodes) ~ {720 * cpu / per:.0f} s CPU"
+        one = walls.get((track, hide, 1))
+        if n > 1 and one is not None:  # start-up of the job processes (spawn, imports) + the work split n ways
+            startup = max(0.0, wall - one / n)
+            hour = (f", 1 h with {n} jobs ~ {startup + 720 * one / per / n:.0f} s wall (start-up {startup:.1f} s "
+                     f"+ 720 x {one / per:.3f} s / {n}, the 1-job wall per episode shared by {n} cores)")
+        elif n == 1:
+            hour += f", ~ {720 * wall / per:.0f} s wall"
         print(f"{label:34s}: {wall:6.1f} s wall, {wall / per:5.2f} s/episode, {cpu / per:5.2f} s CPU/episode "
               f"(job processes included), peak RSS {rss:4.0f} MB (a job process {child:4.0f} MB)"
               + ("" if track else hour), flush=True)
-
 
 if __name__ == "__main__":
     main()

@@ -1,8 +1,9 @@
 """``trackdeform retrack`` throughput: frames per second with 1 and 2 local workers on one session (no assertions).
 
-Usage: .venv/bin/python benchmarks/retrack.py [SESSION] [--seconds 40] [--workers 1,2] [--repeats 1] [--ray]
+Usage: .venv/bin/python benchmarks/retrack.py [SESSION] [--seconds 120] [--workers 1,2] [--repeats 1] [--ray]
 Without SESSION a simulated-time mock demo of ``--seconds`` s is recorded first (one 10 s program run per
-pass: 40 s = 4 runs, so 2 workers have work for both). Each configuration re-tracks the whole session into
+pass: 120 s = 12 runs; the workers' start-up, ~2 s of imports each, is then a small part of the time, as in
+a night's dataset, where it is negligible). Each configuration re-tracks the whole session into
 a fresh keypoint version (deleted afterwards). Printed per configuration: frames, frames/s from the first
 task submitted to the last result and over the whole call (process start-up included), the workers' CPU
 s per frame and how many cores they got (CPU s / tracking s), the load average before and after; then
@@ -32,7 +33,7 @@ from orchestrator.retrack import VERSIONS_DIR, retrack, session_runs  # noqa: E4
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("session", nargs="?", help="a recorded session folder (default: record one)")
-    ap.add_argument("--seconds", type=float, default=40.0, help="length of the recorded session, s")
+    ap.add_argument("--seconds", type=float, default=120.0, help="length of the recorded session, s")
     ap.add_argument("--workers", default="1,2", help="worker counts to compare, comma-separated")
     ap.add_argument("--repeats", type=int, default=1, help="measurements per worker count (alternating)")
     ap.add_argument("--ray", action="store_true", help="also run each worker count on a local Ray cluster")
