@@ -99,3 +99,18 @@ def test_centre_on_ridge_moves_points_across_a_tube_to_the_side_facing_the_camer
     assert np.abs(out[:, 1]).max() < 0.0025  # across: centred (was 5 mm off; 4 mm voxels, 1 mm noise)
     assert np.abs(out[:, 2] - r).max() < 0.0015  # on the skin at the ridge, not inside the tube
     assert np.abs(out[:, 0] - X[:, 0]).max() < 1e-9  # along the tube: untouched
+
+
+def test_soft_anchor_pulls_part_way_and_keeps_edge_lengths_better() -> None:
+    """A chain held at one end (hard) with a noisy anchor 3 cm beyond its other end: hard, the edges stretch
+    by the whole 3 cm; soft (weight 0.2), the end keypoint stops between the chain's length and the anchor."""
+    X0 = np.stack([np.linspace(0.0, 0.4, 5), np.zeros(5), np.zeros(5)], axis=1)
+    edges = np.stack([np.arange(4), np.arange(1, 5)], axis=1)
+    rest = np.full(4, 0.1)
+    idx, pos = np.array([0, 4]), np.array([[0.0, 0.0, 0.0], [0.43, 0.0, 0.0]])
+    params = TrackingParams(use_cloud_projection=False)
+    hard = solve_keypoints(X0, edges, rest, idx, pos, np.zeros((0, 3)), 50, params)
+    soft = solve_keypoints(X0, edges, rest, idx, pos, np.zeros((0, 3)), 50, params, anchor_weight=np.array([1.0, 0.2]))
+    assert np.allclose(hard[[0, 4]], pos) and np.allclose(soft[0], pos[0])
+    assert 0.4 < soft[4, 0] < 0.43
+    assert edge_rmse_mm(soft, edges, rest) < 0.5 * edge_rmse_mm(hard, edges, rest)

@@ -89,12 +89,16 @@ def solve_keypoints(
     iterations: int,
     params: TrackingParams,
     classes: list[np.ndarray] | None = None,
+    anchor_weight: np.ndarray | None = None,
 ) -> np.ndarray:
     """Solve problem (1) by Algorithm 1 from the warm start X0 (N, 3) m.
 
     edges (E, 2) int, rest (E,) m; anchor_idx (A,) int fixed at anchor_pos (A, 3) m; cloud (M, 3) m
-    segmented points or a prebuilt cKDTree of them. The ablation switches of ``params`` turn the
-    anchor, edge and cloud projections off. Returns X (N, 3) float64, metres, world frame.
+    segmented points or a prebuilt cKDTree of them. anchor_weight (A,) in (0, 1]: 1 (default) fixes an
+    anchor; below 1 the anchor's keypoint stays free in the edge and cloud projections and is moved
+    that fraction of the way to its anchor after each iteration (a measured anchor with noise, which a
+    hard constraint passes on to its edges). The ablation switches of ``params`` turn the anchor, edge
+    and cloud projections off. Returns X (N, 3) float64, metres, world frame.
     """
     X = np.array(X0, np.float64, copy=True)
     N = len(X)
@@ -103,9 +107,13 @@ def solve_keypoints(
     anchor_idx = np.asarray(anchor_idx, np.int64).reshape(-1)
     anchor_pos = np.asarray(anchor_pos, np.float64).reshape(-1, 3)
     use_anchors = params.use_anchors and len(anchor_idx) > 0
+    w = np.ones(len(anchor_idx)) if anchor_weight is None else np.asarray(anchor_weight, np.float64).reshape(-1)
+    hard = w >= 1.0
+    hard_idx, hard_pos = anchor_idx[hard], anchor_pos[hard]
+    soft_idx, soft_pos, soft_w = anchor_idx[~hard], anchor_pos[~hard], w[~hard, None]
     inv_mass = np.ones(N)
     if use_anchors:
-        inv_mass[anchor_idx] = 0.0
+        inv_mass[hard_idx] = 0.0
         X[anchor_idx] = anchor_pos
     free = inv_mass > 0
     if classes is None:
@@ -119,7 +127,8 @@ def solve_keypoints(
         if tree is not None:
             X[free] = project_to_cloud(X[free], tree, params.surface_k, params.surface_slide_m)
         if use_anchors:
-            X[anchor_idx] = anchor_pos
+            X[soft_idx] += soft_w * (soft_pos - X[soft_idx])
+            X[hard_idx] = hard_pos
     return X
 
 

@@ -192,8 +192,10 @@ def track_frame(
         keep = ~np.isin(idx[0], g[held])
         idx, pos = [idx[0][keep], g[held]], [pos[0][keep], np.asarray(tcp, np.float64).reshape(-1, 3)[held]]
     aidx, apos = np.concatenate(idx), np.concatenate(pos)
+    weight = np.concatenate([np.full(len(idx[0]), params.anchor_stiffness)] + [np.ones(len(a)) for a in idx[1:]])
     X = solve_keypoints(
-        X_prev, topology.edges, topology.rest, aidx, apos, cloud, params.track_iterations, params, topology.colours
+        X_prev, topology.edges, topology.rest, aidx, apos, cloud, params.track_iterations, params, topology.colours,
+        weight,
     )
     return X, int((m >= 0).sum())
 
