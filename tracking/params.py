@@ -85,8 +85,10 @@ class TrackingParams:
       anchor_neighbour_slack_m: so is a re-detected anchor whose distance to the predicted position
         of a neighbour that is not one differs from their edge's rest length by more than
         anchor_edge_tol of it plus this, m (a rope's free end matched to a spur a few cm off).
-      anchor_stiffness: in (0, 1]: how far a re-detected anchor pulls its keypoint after each solver
-        iteration (1: fixed there, as the paper's hard constraint); grasped keypoints are always fixed.
+      anchor_stiffness: in (0, 1]: how far a re-detected junction (1D) or boundary anchor (cloth) pulls its
+        keypoint after each solver iteration (1: fixed there, the paper's hard constraint): their detections
+        carry the depth noise and contour error that a fixed anchor passes on to its edges. A 1D object's
+        tips and grasped keypoints are always fixed.
       grasp_gate_m: a TCP farther than this from every keypoint holds nothing, m.
       causal_window, symmetric_window: moving-average windows, frames.
       min_object_points: fewer segmented points than this is a bad frame.
@@ -161,7 +163,7 @@ class TrackingParams:
     anchor_regate_m: float = 0.15
     anchor_edge_tol: float = 0.15
     anchor_neighbour_slack_m: float = 0.02
-    anchor_stiffness: float = 1.0
+    anchor_stiffness: float = 0.2
     grasp_gate_m: float = 0.05
     causal_window: int = 3
     symmetric_window: int = 5

@@ -18,6 +18,7 @@ from tracking.anchors import detect_anchors_1d, detect_anchors_2d
 from tracking.init import Initialisation, Topology, initialise
 from tracking.metrics import chamfer_mm, edge_rmse_mm
 from tracking.params import TrackingParams
+from tracking.skeleton import LEAF
 from tracking.solver import solve_keypoints
 
 
@@ -181,18 +182,24 @@ def track_frame(
     )
     idx = [ai[m >= 0]]
     pos = [det_pos[m[m >= 0]]]
+    kinds = topology.anchor_kind[m >= 0]
     if params.anchor_edge_tol > 0:
         ok = consistent_anchors(
             topology, idx[0], pos[0], len(X_prev), params.anchor_edge_tol, Xm, params.anchor_neighbour_slack_m
         )
-        idx, pos = [idx[0][ok]], [pos[0][ok]]
+        idx, pos, kinds = [idx[0][ok]], [pos[0][ok]], kinds[ok]
+    # a 1D object's tips are sharp in the cloud and stay fixed; its junctions and a cloth's boundary, found
+    # less sharply, pull their keypoints part of the way (anchor_stiffness)
+    weight = np.full(len(kinds), params.anchor_stiffness)
+    if topology.kind == "1d":
+        weight[kinds == LEAF] = 1.0
     if tcp is not None and grasp_idx is not None:
         g = np.asarray(grasp_idx, np.int64)
         held = g >= 0
         keep = ~np.isin(idx[0], g[held])
         idx, pos = [idx[0][keep], g[held]], [pos[0][keep], np.asarray(tcp, np.float64).reshape(-1, 3)[held]]
+        weight = np.concatenate([weight[keep], np.ones(int(held.sum()))])  # grasped: fixed at the TCP
     aidx, apos = np.concatenate(idx), np.concatenate(pos)
-    weight = np.concatenate([np.full(len(idx[0]), params.anchor_stiffness)] + [np.ones(len(a)) for a in idx[1:]])
     X = solve_keypoints(
         X_prev, topology.edges, topology.rest, aidx, apos, cloud, params.track_iterations, params, topology.colours,
         weight,
