@@ -3,7 +3,8 @@
 The session records a keypoint message only when it is well formed (``tdcommon.wire.check_keypoints``),
 carries this session's id and the id of a run the session announced, and is of a frame the session
 recorded in that run and has no keypoints for yet. Everything else is counted by kind and logged once
-per kind, then at most once a minute (a flood of bad messages must not flood the log).
+per kind, then at most once a minute (a flood of bad messages must not flood the log). The messages of a
+watched run (the live initialisation's frames, never recorded) go to its watcher instead.
 """
 
 from __future__ import annotations
@@ -89,6 +90,7 @@ class KeypointGate:
         self.current_run = ""
         self._runs: OrderedDict[str, _Run] = OrderedDict()
         self._episode: list[tuple[int, float]] = []  # (frame number, device stamp s) of the open episode
+        self._watched: dict[str, Callable[[dict[str, Any]], None]] = {}  # run id -> taker (not recorded)
         self._lock = threading.Lock()
 
     # ------------------------------------------------------------ capture side
@@ -139,6 +141,15 @@ class KeypointGate:
                       longest_gap_s=round(float(length[gap].max()) if gap.any() else 0.0, 3))
         return report
 
+    def watch(self, run_id: str, take: Callable[[dict[str, Any]], None] | None) -> None:
+        """Hand the checked messages of run ``run_id`` (this session's, not recorded: the live initialisation)
+        to ``take`` instead of rejecting them; ``take`` None stops it."""
+        with self._lock:
+            if take is None:
+                self._watched.pop(run_id, None)
+            else:
+                self._watched[run_id] = take
+
     # ------------------------------------------------------------ bus side
     def accept(self, payload: bytes) -> dict[str, Any] | None:
         """The decoded message when it may be recorded, else None (counted by kind and logged, rate-limited)."""
@@ -156,6 +167,11 @@ class KeypointGate:
                                                "(a worker left over from an earlier session?)")
             return None
         fn = msg["frame_number"]
+        with self._lock:
+            take = self._watched.get(msg["run_id"])
+        if take is not None:
+            take(msg)
+            return None
         with self._lock:
             run = self._runs.get(msg["run_id"])
             if run is None:
