@@ -106,12 +106,18 @@ class LiveInitConfig(StrictModel):
         (0.0, 0.0, 0.05), description="the second configuration: both TCPs moved by this vector (world frame), m")
     move_seconds: float = Field(1.5, ge=0.3, le=10.0,
                                 description="requested time of each move (out and back; ruckig-timed), s")
-    hold_seconds: float = Field(1.0, ge=0.2, le=10.0, description="rest at the second configuration (P1), s")
+    hold_seconds: float = Field(
+        2.0, ge=0.2, le=10.0,
+        description="rest at the second configuration (P1), s: the worker initialises once the difference "
+                    "segmentation stops growing")
     settle_seconds: float = Field(0.5, ge=0.0, le=10.0,
                                   description="rest before the reference P0 and after the move back, s")
     attempts: int = Field(3, ge=1, le=20, description="attempts per object before its runs are skipped")
+    check_frames: int = Field(
+        5, ge=1, le=300, description="worker results at rest after the move back that the check looks at, frames")
     max_edge_error_mm: float = Field(
-        5.0, gt=0.0, le=1000.0, description="the result's edge-length RMSE (the message's abs_mm) must be below, mm")
+        5.0, gt=0.0, le=1000.0,
+        description="the median edge-length RMSE (abs_mm) of the checked results must be below this, mm")
     max_gripper_distance_m: float = Field(
         0.04, gt=0.0, le=1.0, description="a keypoint must lie this close to each closed gripper's TCP, m")
     worker_timeout_s: float = Field(

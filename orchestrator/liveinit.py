@@ -62,30 +62,44 @@ def expected_keypoints(category: str, n_keypoints: int | None) -> int:
     return int(n)
 
 
-def check_result(msg: dict[str, Any], expected: int, tcp: np.ndarray, closed: np.ndarray,
+def check_result(msgs: list[dict[str, Any]], expected: int, tcp: np.ndarray, closed: np.ndarray,
                  cfg: LiveInitConfig) -> tuple[str | None, dict[str, Any]]:
-    """Check a worker's keypoint message after the initialisation: (why it fails or None, its metrics).
+    """Check the worker's keypoint messages of frames at rest after the move back (oldest first): (why the
+    initialisation fails or None, its metrics).
 
-    tcp: (2, 3) m world, left then right, the grippers' TCPs at the message's frame (the arms at rest);
-    closed: (2,) bool, which grippers hold the object. Metrics: status, frame_number, n_keypoints,
-    abs_mm (edge-length RMSE, mm), cd_mm, gripper_distance_m per closed gripper (nearest keypoint, m).
+    Every message must be tracked (no ``lost`` or ``waiting``; at most half ``degraded``), the newest must
+    hold ``expected`` keypoints with one within ``max_gripper_distance_m`` of each closed gripper, and the
+    median edge-length RMSE (abs_mm) must be below ``max_edge_error_mm``. tcp: (2, 3) m world, left then
+    right, the grippers' TCPs there (the arms at rest); closed: (2,) bool, the grippers holding the object.
     """
-    X = np.asarray([[p["x"], p["y"], p["z"]] if isinstance(p, dict) else p for p in msg.get("keypoints", [])],
+    if not msgs:
+        return "no result from the worker", {}
+    newest = msgs[-1]
+    X = np.asarray([[p["x"], p["y"], p["z"]] if isinstance(p, dict) else p for p in newest.get("keypoints", [])],
                    np.float64).reshape(-1, 3)
     dist: dict[str, float] = {}
     if len(X):
         for k, arm in enumerate(ARMS):
             if closed[k]:
                 dist[arm] = round(float(np.linalg.norm(X - tcp[k], axis=1).min()), 4)
-    abs_mm = msg.get("abs_mm")
+    statuses = [str(m.get("status")) for m in msgs]
+    abs_all = [m.get("abs_mm") for m in msgs]
+    abs_ok = [a for a in abs_all if a is not None]
+    cd_ok = [m["cd_mm"] for m in msgs if m.get("cd_mm") is not None]
+    abs_mm = round(float(np.median(abs_ok)), 3) if abs_ok and len(abs_ok) == len(abs_all) else None
     metrics = {
-        "status": msg.get("status"), "frame_number": msg.get("frame_number"), "n_keypoints": int(len(X)),
-        "expected_keypoints": expected, "abs_mm": abs_mm, "cd_mm": msg.get("cd_mm"),
-        "gripper_distance_m": dist, "grasp_indices": msg.get("grasp_indices"), "note": msg.get("note", ""),
+        "frames": [m.get("frame_number") for m in msgs], "statuses": {s: statuses.count(s) for s in set(statuses)},
+        "n_keypoints": int(len(X)), "expected_keypoints": expected, "abs_mm": abs_mm,
+        "cd_mm": round(float(np.median(cd_ok)), 3) if cd_ok else None,
+        "gripper_distance_m": dist, "grasp_indices": newest.get("grasp_indices"),
     }
-    if msg.get("status") not in TRACKED:
-        note = f" ({msg['note']})" if msg.get("note") else ""
-        return f"the worker is not tracking after the move (status {msg.get('status')}{note})", metrics
+    untracked = [s for s in statuses if s not in (*TRACKED, "degraded")]
+    if untracked:
+        note = f" ({newest['note']})" if newest.get("note") else ""
+        return f"the worker is not tracking after the move (status {untracked[-1]}{note})", metrics
+    degraded = statuses.count("degraded")
+    if 2 * degraded > len(statuses):
+        return f"the track is degraded in {degraded} of the {len(statuses)} checked frames", metrics
     if len(X) != expected:
         return f"{len(X)} keypoints, expected {expected}", metrics
     if abs_mm is None or not abs_mm < cfg.max_edge_error_mm:
@@ -152,9 +166,19 @@ class _Answers:
         self.newest: dict[str, Any] | None = None
         self.count = 0
         self.init_frame: int | None = None  # the frame the worker initialised on
+        self.all: list[dict[str, Any]] = []
+
+    def since(self, frame_number: int) -> list[dict[str, Any]]:
+        """The messages of frames >= ``frame_number``, in frame order."""
+        with self._cond:
+            return sorted((m for m in self.all if m["frame_number"] >= frame_number),
+                          key=lambda m: m["frame_number"])
 
     def add(self, msg: dict[str, Any]) -> None:
         with self._cond:
+            self.all.append(msg)
+            log.debug("live init answer: frame %d %s n_points %s", msg["frame_number"], msg["status"],
+                      msg.get("n_points"))
             if self.newest is None or msg["frame_number"] >= self.newest["frame_number"]:
                 if self.newest is None or self.newest["status"] != msg["status"]:
                     log.debug("live init: frame %d: %s %s", msg["frame_number"], msg["status"], msg.get("note", ""))
@@ -234,6 +258,8 @@ class LiveInit:
         self.state_rate = state_rate
         self.set_state = set_state
         self.sim_time = config.clock == "sim"
+        self.timeline: dict[str, Any] = {}  # the last attempt's phase frame numbers
+        self._last = -1
 
     def run(self, station: Station, item: RunItem, worker_restarts: Callable[[], int] = lambda: 0) -> InitOutcome:
         """Attempt the initialisation up to ``attempts`` times before ``item`` (the object's next run)."""
@@ -262,9 +288,10 @@ class LiveInit:
             rec: dict[str, Any] = {"attempt": attempt}
             track = uuid.uuid4().hex[:12]
             try:
-                msg, tcp, closed = self._attempt(station, item, start, track)
-                reason, metrics = check_result(msg, expected, tcp, closed, self.cfg)
-                rec["metrics"] = metrics
+                self.timeline = {}
+                msgs, tcp, closed = self._attempt(station, item, start, track)
+                reason, metrics = check_result(msgs, expected, tcp, closed, self.cfg)
+                rec["metrics"] = {**metrics, "timeline": self.timeline}
                 if reason is None and worker_restarts() != restarts:
                     reason = "the tracking worker restarted during the initialisation"
             except InitFailed as e:
@@ -294,9 +321,10 @@ class LiveInit:
 
     # ------------------------------------------------------------------ one attempt
     def _attempt(self, station: Station, item: RunItem, start: np.ndarray,
-                 track: str) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
-        """Approach, P0, move out / hold / back, settle; the worker's answer for a frame at rest afterwards,
-        with the TCPs (2, 3) m and closed flags (2,) there."""
+                 track: str) -> tuple[list[dict[str, Any]], np.ndarray, np.ndarray]:
+        """Approach, P0, move out / hold / back, settle; the worker's answers for ``check_frames`` frames at
+        rest afterwards, with the TCPs (2, 3) m and closed flags (2,) there. ``timeline`` gets the frame
+        numbers of the phases and where the worker initialised."""
         stream, cfg = self.stream, self.cfg
         approach, move = plan_init_motions(station, start, cfg)
         run_id = f"init-{uuid.uuid4().hex[:12]}"
@@ -311,6 +339,7 @@ class LiveInit:
         poller = None if self.sim_time else StatePoller(lambda: stream.publish_states(station), self.state_rate)
         self._next_state_t = self.clock.now()
         self._pace = self.sim_time
+        self._last = -1  # the newest frame number read
         fps = station.fps
         try:
             if poller:
@@ -319,27 +348,42 @@ class LiveInit:
                 self._move(station, approach, answers, publish=False)
             self._rest(station, cfg.settle_seconds, answers, publish=False)
             # P0: frames at rest until the worker has taken one as its reference
+            stream.run_info["init_step"] = "p0"
             deadline = time.monotonic() + cfg.worker_timeout_s
             while answers.count == 0:
                 if time.monotonic() > deadline:
                     raise InitFailed("the tracking worker answered no reference frame within "
                                      f"{cfg.worker_timeout_s:g} s")
                 self._frame(station, answers, publish=True)
-            self._move(station, move, answers, publish=True)
-            last = self._rest(station, cfg.settle_seconds, answers, publish=True)
+            phases = {"p0": int(answers.since(-1)[0]["frame_number"])}
+            hold_t = float(move.waypoint_times()[1])  # the arrival at P1, s after the move started
+            self._move(station, move, answers, publish=True, mark=(hold_t, phases))
+            phases["back_at_start"] = self._last
+            stream.run_info["init_step"] = "rest"
+            last = self._rest(station, cfg.settle_seconds, answers, publish=True) + 1
             deadline = time.monotonic() + cfg.worker_timeout_s
-            while answers.frame() < last:  # the answer of a frame at rest, after the move back
+            while len(answers.since(last)) < cfg.check_frames:  # results of frames at rest after the move back
                 if time.monotonic() > deadline:
-                    raise InitFailed(f"the tracking worker reported no result within {cfg.worker_timeout_s:g} s "
+                    raise InitFailed(f"the tracking worker reported {len(answers.since(last))} of "
+                                     f"{cfg.check_frames} results within {cfg.worker_timeout_s:g} s "
                                      "after the move back")
-                if not answers.wait_frame(last, 1.0 / fps):
+                newest = answers.newest
+                if newest is not None and newest["frame_number"] >= last and newest["status"] not in (
+                        *TRACKED, "degraded"):
+                    break  # not tracking at rest: it will not initialise any more (no difference to P0)
+                if not answers.wait_frame(self._last + 1, 1.0 / fps):
                     self._frame(station, answers, publish=True)
-            msg = answers.newest
-            assert msg is not None
+            msgs = answers.since(last)[: cfg.check_frames]
             q = station.current_q()
             tcp = np.stack([station.kin[a].tcp_pose(q[a])[:3, 3] for a in ARMS])
             closed = np.array([station.grippers[a].read_state().grasped for a in ARMS])
-            return msg, tcp, closed
+            init = answers.init_frame
+            self.timeline = {**phases, "checked_from": last, "initialised_at": init,
+                             "initialised_during": None if init is None else
+                             "move out" if init < phases.get("p1", 1 << 62) else
+                             "hold at P1" if init <= phases.get("back", 1 << 62) else
+                             "move back" if init <= phases["back_at_start"] else "rest"}
+            return msgs, tcp, closed
         except DeviceError as e:
             station.stop_arms()
             if not e.recoverable:
@@ -371,6 +415,7 @@ class LiveInit:
                 self.stream.publish_states(station)
                 self._next_state_t += 1.0 / self.state_rate
         frame = station.read_frame()
+        self._last = frame.frame_number
         if publish:
             self.stream.publish_frame(frame, station)
             if self._pace and not answers.wait_frame(frame.frame_number, PACE_TIMEOUT_S):
@@ -384,13 +429,21 @@ class LiveInit:
             last = self._frame(station, answers, publish)
         return last
 
-    def _move(self, station: Station, timed: Any, answers: _Answers, publish: bool) -> None:
-        """Run a timed motion on both arms, reading (and publishing) frames until it ends."""
+    def _move(self, station: Station, timed: Any, answers: _Answers, publish: bool,
+              mark: tuple[float, dict[str, int]] | None = None) -> None:
+        """Run a timed motion on both arms, reading (and publishing) frames until it ends. ``mark``: (the
+        arrival at P1, s after the start; a dict that gets the frame numbers ``p1`` and ``back`` there); each
+        frame's header then says ``init_step`` move, p1 or back (the worker initialises at P1, not on the way)."""
         left, right = timed.to_motions(EXECUTION_RATE)
         t0 = self.clock.now()
         station.arms["left"].start_motion(left)
         station.arms["right"].start_motion(right)
         while self.clock.now() - t0 < timed.duration:
+            if mark is not None:
+                t = self.clock.now() - t0
+                step = "move" if t < mark[0] else "p1" if t < mark[0] + self.cfg.hold_seconds else "back"
+                self.stream.run_info["init_step"] = step
+                mark[1].setdefault(step, self._last + 1)
             self._frame(station, answers, publish)
             for arm in station.arms.values():
                 arm.wait_motion(0.0)  # raises DeviceError on a fault

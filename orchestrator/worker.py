@@ -163,6 +163,7 @@ class Worker:
         self.pipeline: LivePipeline | None = None
         self._track_id: str | None = None  # the track the pipeline follows (announced track_id, else run_id)
         self._asked: tuple[str, float] = ("", -1e9)  # the header run id last asked about, monotonic s
+        self._reference_gap: int | None = None  # the pipeline's own, while a P0 / P1 initialisation overrides it
         self._announced: dict[str, Any] | None = None  # the newest run announcement of our session
         self._last_frame: int | None = None
         self.stats = WorkerStats()
@@ -218,6 +219,12 @@ class Worker:
             category = run.get("category")
             params = tracking_params(self.config.tracking, category, run.get("n_keypoints"))
             self.pipeline = LivePipeline(params, K, T, DIMENSION.get(category))
+            if run.get("phase") == "init":
+                # the session's P0 / P1 initialisation: P1 (the arms holding still at the second configuration)
+                # is differenced against the reference P0 alone; recent frames become references again once
+                # it is initialised (see step), for a re-initialisation after a lost track
+                self._reference_gap = self.pipeline.reference_gap
+                self.pipeline.reference_gap = 1 << 30
             self._track_id = track
             self.stats.runs += 1
             log.info("new track %s for %s run %s (%s): tracking %s (%s)", track, run.get("phase", "record"),
@@ -269,11 +276,22 @@ class Worker:
                       run["run_id"])
             return True
         pipe = self._pipeline_for(run, frame.intrinsics.K, msg.T_world_cam)
+        if run.get("phase") == "init" and msg.run.get("init_step") == "move" and pipe.state == "waiting":
+            # on the way from P0 to P1 the object is still moving: the initialisation waits for P1
+            out = PipelineOutput("waiting", np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64),
+                                 float("nan"), float("nan"), 0, note="moving to the second configuration P1")
+            ms = (time.perf_counter() - t0) * 1e3
+            self.bus.put(self.key_out, keypoint_message(out, frame.frame_number, frame.device_stamp, run, ms))
+            self.stats.frames += 1
+            self.stats.published += 1
+            return True
         V = F = tcp = closed = None
         if state is not None:
             V, F, tcp, closed = self.arms.from_state(state)
         before = pipe.state
         out = pipe.process(frame.depth_m(), V, F, tcp, closed)
+        if self._reference_gap is not None and pipe.state == "tracking":
+            pipe.reference_gap, self._reference_gap = self._reference_gap, None
         if out.status == "init":
             self.stats.initialisations += 1
         if out.status == "lost":
