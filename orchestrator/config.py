@@ -116,8 +116,9 @@ class LiveInitConfig(StrictModel):
     check_frames: int = Field(
         5, ge=1, le=300, description="worker results at rest after the move back that the check looks at, frames")
     max_edge_error_mm: float = Field(
-        5.0, gt=0.0, le=1000.0,
-        description="the median edge-length RMSE (abs_mm) of the checked results must be below this, mm")
+        8.0, gt=0.0, le=1000.0,
+        description="the median edge-length RMSE (abs_mm) of the checked results must be below this, mm "
+                    "(the tracker calls a frame bad above tracking max_edge_rmse_m, 15 mm)")
     max_gripper_distance_m: float = Field(
         0.04, gt=0.0, le=1.0, description="a keypoint must lie this close to each closed gripper's TCP, m")
     worker_timeout_s: float = Field(

@@ -177,8 +177,6 @@ class _Answers:
     def add(self, msg: dict[str, Any]) -> None:
         with self._cond:
             self.all.append(msg)
-            log.debug("live init answer: frame %d %s n_points %s", msg["frame_number"], msg["status"],
-                      msg.get("n_points"))
             if self.newest is None or msg["frame_number"] >= self.newest["frame_number"]:
                 if self.newest is None or self.newest["status"] != msg["status"]:
                     log.debug("live init: frame %d: %s %s", msg["frame_number"], msg["status"], msg.get("note", ""))
