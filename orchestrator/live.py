@@ -91,6 +91,8 @@ class KeypointGate:
         self._runs: OrderedDict[str, _Run] = OrderedDict()
         self._episode: list[tuple[int, float]] = []  # (frame number, device stamp s) of the open episode
         self._watched: dict[str, Callable[[dict[str, Any]], None]] = {}  # run id -> taker (not recorded)
+        self._retired: OrderedDict[str, None] = OrderedDict()  # watched runs that ended: late messages dropped
+        self.late_watched = 0  # messages of watched runs that came after the watch ended
         self._lock = threading.Lock()
 
     # ------------------------------------------------------------ capture side
@@ -143,10 +145,14 @@ class KeypointGate:
 
     def watch(self, run_id: str, take: Callable[[dict[str, Any]], None] | None) -> None:
         """Hand the checked messages of run ``run_id`` (this session's, not recorded: the live initialisation)
-        to ``take`` instead of rejecting them; ``take`` None stops it."""
+        to ``take`` instead of rejecting them; ``take`` None stops it (the run's late messages are then dropped
+        quietly: the worker answers the last frames after the session has moved on)."""
         with self._lock:
             if take is None:
-                self._watched.pop(run_id, None)
+                if self._watched.pop(run_id, None) is not None:
+                    self._retired[run_id] = None
+                    while len(self._retired) > 16:
+                        self._retired.popitem(last=False)
             else:
                 self._watched[run_id] = take
 
@@ -169,8 +175,11 @@ class KeypointGate:
         fn = msg["frame_number"]
         with self._lock:
             take = self._watched.get(msg["run_id"])
+            late = take is None and msg["run_id"] in self._retired
+            self.late_watched += late
         if take is not None:
             take(msg)
+        if take is not None or late:
             return None
         with self._lock:
             run = self._runs.get(msg["run_id"])

@@ -96,8 +96,10 @@ def test_gate_hands_watched_run_messages_to_the_watcher_without_recording_or_rej
     assert [m["frame_number"] for m in got] == [3] and not gate.rejected.counts and gate.accepted == 0
     assert gate.accept(kp_message(frame=3, run="init-1", session="other")) is None  # another session: rejected
     assert len(got) == 1 and gate.rejected.counts == {"other_session": 1}
-    gate.watch("init-1", None)
-    assert gate.accept(kp_message(frame=4, run="init-1")) is None and gate.rejected.counts["unknown_run"] == 1
+    gate.watch("init-1", None)  # its late answers are dropped quietly
+    assert gate.accept(kp_message(frame=4, run="init-1")) is None and len(got) == 1 and gate.late_watched == 1
+    assert gate.rejected.counts == {"other_session": 1}
+    assert gate.accept(kp_message(frame=4, run="init-2")) is None and gate.rejected.counts["unknown_run"] == 1
 
 
 # ---------------------------------------------------------------------- the move
