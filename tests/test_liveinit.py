@@ -15,7 +15,7 @@ from orchestrator.bus import Bus
 from orchestrator.config import DEFAULT_CONFIG, Config, ConfigError, LiveInitConfig, load_config
 from orchestrator.journal import JOURNAL_NAME, read_journal
 from orchestrator.live import KeypointGate
-from orchestrator.liveinit import check_result, expected_keypoints, plan_init_motions
+from orchestrator.liveinit import InitOutcome, check_result, expected_keypoints, plan_init_motions
 from orchestrator.session import Session
 from orchestrator.station import Station
 from tdrecord import load_episode
@@ -204,3 +204,22 @@ def test_failing_check_retries_then_skips_the_object_with_the_reason(tmp_path: P
     assert any("live_init_failed" in i for i in summary.incidents)
     saved = json.loads((tmp_path / "summary.json").read_text())
     assert saved["live_init"][0]["outcome"] == "failed" and saved["live_init"][0]["attempts"] == 2
+
+
+def test_a_later_run_initialises_again_after_a_worker_restart_or_a_lost_track(tmp_path: Path) -> None:
+    session = Session(load_config(DEFAULT_CONFIG), tmp_path, SimClock())
+    ok = InitOutcome("rope", True, "t1", worker_restarts=0)
+    assert session._needs_init(None)  # the object's first run
+    session._last_status = "tracking"
+    assert not session._needs_init(ok)  # the track goes on into the next run
+    session._last_status = "degraded"
+    assert not session._needs_init(ok)
+    for status in ("lost", "waiting", None):  # lost, never tracked, or no keypoints recorded in the last run
+        session._last_status = status
+        assert session._needs_init(ok)
+    session._last_status = "tracking"
+    assert session._needs_init(InitOutcome("rope", True, "t1", worker_restarts=1))  # the worker restarted since
+    assert not session._needs_init(InitOutcome("rope", False, None))  # on_failure: record: not every run again
+    off = Session(load_config(DEFAULT_CONFIG, {"tracking.live_init.reinitialise": False}), tmp_path, SimClock())
+    off._last_status = "lost"
+    assert not off._needs_init(ok)
