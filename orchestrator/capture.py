@@ -40,6 +40,7 @@ from tdcommon.types import RGBDFrame
 from tdcommon.wire import encode_frame, encode_json
 
 log = logging.getLogger(__name__)
+SIM_FIRST_FRAME_WAIT_S = 2.0  # simulated time, live-initialised run: wall s an episode's first frame waits
 
 
 class LowDisk(RuntimeError):
@@ -386,6 +387,10 @@ class RunCapture:
                         next_state_t += 1.0 / ctx.state_rate
                 frame = station.read_frame()
                 stream.record_frame(frame, station)
+                if sim_time and episode_frames == 0 and stream.gate is not None and ctx.announce.get("track_id"):
+                    # the camera does not pace simulated time: let the (initialised) worker have each episode's
+                    # first frame before the next one replaces it on the ring channel
+                    stream.gate.wait_keypoints(frame.frame_number, SIM_FIRST_FRAME_WAIT_S)
                 episode_frames += 1
                 frames += 1
                 ctx.summary.recorded_seconds += 1.0 / fps

@@ -156,6 +156,19 @@ class KeypointGate:
             else:
                 self._watched[run_id] = take
 
+    def wait_keypoints(self, frame_number: int, timeout: float) -> bool:
+        """Wait (wall time, at most ``timeout`` s) until keypoints of the current run's ``frame_number`` are
+        accepted; False on timeout. Simulated time only: the camera does not pace the frames there."""
+        deadline = time.monotonic() + timeout
+        while True:
+            with self._lock:
+                run = self._runs.get(self.current_run)
+                if run is not None and frame_number in run.with_keypoints:
+                    return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.002)
+
     # ------------------------------------------------------------ bus side
     def accept(self, payload: bytes) -> dict[str, Any] | None:
         """The decoded message when it may be recorded, else None (counted by kind and logged, rate-limited)."""
