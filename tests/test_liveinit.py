@@ -223,3 +223,20 @@ def test_a_later_run_initialises_again_after_a_worker_restart_or_a_lost_track(tm
     off = Session(load_config(DEFAULT_CONFIG, {"tracking.live_init.reinitialise": False}), tmp_path, SimClock())
     off._last_status = "lost"
     assert not off._needs_init(ok)
+
+
+@pytest.mark.slow
+def test_on_failure_record_records_the_runs_with_the_failed_outcome(tmp_path: Path, port: int) -> None:
+    program = _short_program(tmp_path / "rope_short.yaml")
+    cfg = _session_config(port, program, **{"tracking.live_init.max_edge_error_mm": 1e-6,
+                                            "tracking.live_init.attempts": 1,
+                                            "tracking.live_init.on_failure": "record"})
+    out = tmp_path / "session"
+    with Bus(cfg.bus, cfg.station.name) as bus:
+        summary = Session(cfg, out, SimClock(), bus=bus, with_worker=True).run()
+    assert summary.runs_done == 1 and not summary.runs_skipped, summary.text()
+    (run,) = [r for r in _journal(out) if r["type"] == "run"]
+    assert run["outcome"] == "done"
+    eps = [load_episode(p, images=False) for p in sorted(out.glob("episode_*.mcap"))]
+    assert eps and all(ep.metadata["live_init"]["outcome"] == "failed" for ep in eps)
+    assert "edge-length error" in eps[0].metadata["live_init"]["reason"]
