@@ -338,7 +338,6 @@ class LiveInit:
         self._next_state_t = self.clock.now()
         self._pace = self.sim_time
         self._last = -1  # the newest frame number read
-        fps = station.fps
         try:
             if poller:
                 poller.__enter__()
@@ -358,7 +357,8 @@ class LiveInit:
             self._move(station, move, answers, publish=True, mark=(hold_t, phases))
             phases["back_at_start"] = self._last
             stream.run_info["init_step"] = "rest"
-            last = self._rest(station, cfg.settle_seconds, answers, publish=True) + 1
+            self._rest(station, cfg.settle_seconds, answers, publish=True)
+            last = self._last + 1  # the frames read from now on are checked
             deadline = time.monotonic() + cfg.worker_timeout_s
             while len(answers.since(last)) < cfg.check_frames:  # results of frames at rest after the move back
                 if time.monotonic() > deadline:
@@ -369,8 +369,7 @@ class LiveInit:
                 if newest is not None and newest["frame_number"] >= last and newest["status"] not in (
                         *TRACKED, "degraded"):
                     break  # not tracking at rest: it will not initialise any more (no difference to P0)
-                if not answers.wait_frame(self._last + 1, 1.0 / fps):
-                    self._frame(station, answers, publish=True)
+                self._frame(station, answers, publish=True)
             msgs = answers.since(last)[: cfg.check_frames]
             q = station.current_q()
             tcp = np.stack([station.kin[a].tcp_pose(q[a])[:3, 3] for a in ARMS])
@@ -393,7 +392,7 @@ class LiveInit:
                 station.broken = f"recovery failed: {e2}"
                 raise InitFailed(f"device fault: {e}; recovery failed: {e2}") from None
             raise InitFailed(f"device fault: {e} (recovered)") from None
-        except InitFailed:
+        except (InitFailed, InitStopped):
             station.stop_arms()
             raise
         finally:
