@@ -104,7 +104,7 @@ class LiveInitConfig(StrictModel):
     enabled: bool = Field(True, description="run the initialisation before each object's first recorded run")
     displacement: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.05), description="the second configuration: both TCPs moved by this vector (world frame), m")
-    move_seconds: float = Field(1.5, ge=0.3, le=10.0,
+    move_seconds: float = Field(3.0, ge=0.3, le=10.0,
                                 description="requested time of each move (out and back; ruckig-timed), s")
     hold_seconds: float = Field(
         2.0, ge=0.2, le=10.0,
@@ -115,10 +115,10 @@ class LiveInitConfig(StrictModel):
     attempts: int = Field(3, ge=1, le=20, description="attempts per object before its runs are skipped")
     check_frames: int = Field(
         5, ge=1, le=300, description="worker results at rest after the move back that the check looks at, frames")
-    max_edge_error_mm: float = Field(
-        8.0, gt=0.0, le=1000.0,
-        description="the median edge-length RMSE (abs_mm) of the checked results must be below this, mm "
-                    "(the tracker calls a frame bad above tracking max_edge_rmse_m, 15 mm)")
+    max_edge_error: float = Field(
+        0.15, gt=0.0, le=10.0,
+        description="the median edge-length RMSE of the checked results (the messages' abs_mm) must be below this "
+                    "fraction of the mean rest edge length (unitless: the same check for any object size)")
     max_gripper_distance_m: float = Field(
         0.04, gt=0.0, le=1.0, description="a keypoint must lie this close to each closed gripper's TCP, m")
     worker_timeout_s: float = Field(

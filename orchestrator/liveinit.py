@@ -6,7 +6,8 @@ P0, (c) moves both grippers by ``tracking.live_init.displacement`` (ruckig-timed
 there (P1) and moves back, publishing every frame: the worker segments the object by differencing P1
 against P0 and initialises, then tracks the move back; (d) checks the worker's keypoints of a frame at
 rest after the move back: the keypoint count the object is configured for, an edge-length error below
-``max_edge_error_mm`` and a keypoint within ``max_gripper_distance_m`` of each closed gripper's TCP.
+``max_edge_error`` of the mean rest edge length and a keypoint within ``max_gripper_distance_m`` of each
+closed gripper's TCP.
 A failed check is retried (``attempts``); after the last one the object's runs are skipped (or, with
 ``on_failure: record``, recorded without it). None of these frames is recorded: they are announced on
 ``session/run`` as a run of their own (``phase: init``) with the ``track_id`` the object's recorded runs
@@ -69,7 +70,8 @@ def check_result(msgs: list[dict[str, Any]], expected: int, tcp: np.ndarray, clo
 
     Every message must be tracked (no ``lost`` or ``waiting``; at most half ``degraded``), the newest must
     hold ``expected`` keypoints with one within ``max_gripper_distance_m`` of each closed gripper, and the
-    median edge-length RMSE (abs_mm) must be below ``max_edge_error_mm``. tcp: (2, 3) m world, left then
+    median edge-length RMSE (abs_mm) must be below ``max_edge_error`` times the newest message's mean rest
+    edge length (``edge_error``, unitless, in the metrics). tcp: (2, 3) m world, left then
     right, the grippers' TCPs there (the arms at rest); closed: (2,) bool, the grippers holding the object.
     """
     if not msgs:
@@ -87,9 +89,13 @@ def check_result(msgs: list[dict[str, Any]], expected: int, tcp: np.ndarray, clo
     abs_ok = [a for a in abs_all if a is not None]
     cd_ok = [m["cd_mm"] for m in msgs if m.get("cd_mm") is not None]
     abs_mm = round(float(np.median(abs_ok)), 3) if abs_ok and len(abs_ok) == len(abs_all) else None
+    rest = np.asarray(newest.get("rest_lengths") or [], np.float64)
+    mean_rest_m = float(rest.mean()) if len(rest) else None
+    ratio = round(abs_mm / 1e3 / mean_rest_m, 4) if abs_mm is not None and mean_rest_m else None
     metrics = {
         "frames": [m.get("frame_number") for m in msgs], "statuses": {s: statuses.count(s) for s in set(statuses)},
-        "n_keypoints": int(len(X)), "expected_keypoints": expected, "abs_mm": abs_mm,
+        "n_keypoints": int(len(X)), "expected_keypoints": expected, "abs_mm": abs_mm, "edge_error": ratio,
+        "mean_rest_length_m": None if mean_rest_m is None else round(mean_rest_m, 5),
         "cd_mm": round(float(np.median(cd_ok)), 3) if cd_ok else None,
         "gripper_distance_m": dist, "grasp_indices": newest.get("grasp_indices"),
     }
@@ -102,8 +108,9 @@ def check_result(msgs: list[dict[str, Any]], expected: int, tcp: np.ndarray, clo
         return f"the track is degraded in {degraded} of the {len(statuses)} checked frames", metrics
     if len(X) != expected:
         return f"{len(X)} keypoints, expected {expected}", metrics
-    if abs_mm is None or not abs_mm < cfg.max_edge_error_mm:
-        return f"edge-length error {abs_mm} mm, must be below {cfg.max_edge_error_mm:g} mm", metrics
+    if ratio is None or not ratio < cfg.max_edge_error:
+        return (f"edge-length error {abs_mm} mm = {ratio} of the mean edge length, must be below "
+                f"{cfg.max_edge_error:g}"), metrics
     far = {a: d for a, d in dist.items() if d > cfg.max_gripper_distance_m}
     if far:
         what = ", ".join(f"{a} {d * 1e3:.0f} mm" for a, d in far.items())
@@ -236,7 +243,8 @@ class InitOutcome:
                f"({self.seconds:.1f} s)"
         if self.ok:
             m = self.metrics
-            return head + f": {m.get('n_keypoints')} keypoints, edge error {m.get('abs_mm')} mm"
+            return head + (f": {m.get('n_keypoints')} keypoints, edge error {m.get('abs_mm')} mm "
+                           f"({m.get('edge_error')} of an edge)")
         return head + f": {self.reason}"
 
 

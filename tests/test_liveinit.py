@@ -31,7 +31,9 @@ def _msg(frame: int, status: str = "tracking", n: int = 20, abs_mm: float = 1.0,
     t = np.linspace(0.0, 1.0, n)[:, None]
     a, b = TCP[0] + [0, -end_gap, 0], TCP[1] + [0, end_gap, 0]
     X = a + t * (b - a)
-    return json.loads(kp_message(n=n, frame=frame, keypoints=X, status=status, abs_mm=abs_mm))
+    rest = [float(np.linalg.norm(b - a)) / max(1, n - 1)] * max(0, n - 1)  # 26.3 mm for 20 keypoints, no gap
+    return json.loads(kp_message(n=n, frame=frame, keypoints=X, status=status, abs_mm=abs_mm,
+                                 extra={"rest_lengths": rest}))
 
 
 def _check(msgs: list[dict], expected: int = 20, closed: np.ndarray = BOTH, **cfg: Any) -> tuple[str | None, dict]:
@@ -43,13 +45,16 @@ def test_check_accepts_a_tracked_object_held_at_both_grippers() -> None:
     reason, m = _check([_msg(f) for f in range(5)])
     assert reason is None
     assert m["n_keypoints"] == 20 and m["abs_mm"] == 1.0 and m["gripper_distance_m"] == {"left": 0.0, "right": 0.0}
+    assert m["mean_rest_length_m"] == pytest.approx(0.5 / 19, abs=1e-5)
+    assert m["edge_error"] == pytest.approx(0.038, abs=1e-3)
     assert m["statuses"] == {"tracking": 5} and m["frames"] == [0, 1, 2, 3, 4]
 
 
 @pytest.mark.parametrize(("msgs", "cfg", "expected", "why"), [
     ([_msg(0, n=12)], {}, 20, "12 keypoints, expected 20"),
-    ([_msg(0, abs_mm=9.0), _msg(1, abs_mm=9.5), _msg(2, abs_mm=1.0)], {}, 20, "edge-length error 9.0 mm"),
-    ([_msg(0, abs_mm=1.0)], {"max_edge_error_mm": 0.5}, 20, "must be below 0.5 mm"),
+    ([_msg(0, abs_mm=5.0), _msg(1, abs_mm=5.5), _msg(2, abs_mm=1.0)], {}, 20,
+     "edge-length error 5.0 mm = 0.19 of the mean edge length, must be below 0.15"),
+    ([_msg(0, abs_mm=1.0)], {"max_edge_error": 0.01}, 20, "must be below 0.01"),
     ([_msg(0, end_gap=0.06)], {}, 20, "no keypoint at the closed gripper(s): nearest left 60 mm, right 60 mm"),
     ([_msg(0), _msg(1, status="lost")], {}, 20, "not tracking after the move (status lost)"),
     ([_msg(0, status="waiting", n=0)], {}, 20, "not tracking after the move (status waiting)"),
@@ -79,7 +84,7 @@ def test_config_defaults_and_validation(tmp_path: Path) -> None:
     assert li.enabled and li.attempts == 3 and li.on_failure == "skip"
     assert np.isclose(np.linalg.norm(li.displacement), 0.05)
     for bad, field in [({"displacement": [0, 0, 0.5]}, "displacement"), ({"displacement": [0, 0, 0.001]},
-                       "displacement"), ({"attempts": 0}, "attempts"), ({"max_edge_error_mm": 0}, "max_edge_error_mm"),
+                       "displacement"), ({"attempts": 0}, "attempts"), ({"max_edge_error": 0}, "max_edge_error"),
                        ({"on_failure": "ignore"}, "on_failure"), ({"typo": 1}, "typo")]:
         with pytest.raises(ConfigError, match=rf"tracking\.live_init\.{field}"):
             load_config(DEFAULT_CONFIG, {f"tracking.live_init.{k}": v for k, v in bad.items()})
@@ -169,7 +174,7 @@ def test_recorded_runs_are_tracked_from_their_first_frame(tmp_path: Path, port: 
     inits = [r for r in _journal(tmp_path) if r["type"] == "live_init"]
     assert len(inits) == 1 and inits[0]["outcome"] == "ok", inits
     m = inits[0]["attempts"][-1]["metrics"]
-    assert m["n_keypoints"] == 20 and m["abs_mm"] < 8.0 and max(m["gripper_distance_m"].values()) <= 0.04
+    assert m["n_keypoints"] == 20 and m["edge_error"] < 0.15 and max(m["gripper_distance_m"].values()) <= 0.04
     assert m["timeline"]["initialised_during"] == "hold at P1", m["timeline"]
     assert "live init        : rope: ok after" in summary.text()
     eps = [load_episode(p, images=False) for p in sorted(tmp_path.glob("episode_*.mcap"))]
@@ -186,7 +191,7 @@ def test_recorded_runs_are_tracked_from_their_first_frame(tmp_path: Path, port: 
 @pytest.mark.slow
 def test_failing_check_retries_then_skips_the_object_with_the_reason(tmp_path: Path, port: int) -> None:
     program = _short_program(tmp_path / "rope_short.yaml")
-    cfg = _session_config(port, program, **{"tracking.live_init.max_edge_error_mm": 1e-6,
+    cfg = _session_config(port, program, **{"tracking.live_init.max_edge_error": 1e-6,
                                             "tracking.live_init.attempts": 2})
     tmp_path = tmp_path / "session"
     with Bus(cfg.bus, cfg.station.name) as bus:
@@ -228,7 +233,7 @@ def test_a_later_run_initialises_again_after_a_worker_restart_or_a_lost_track(tm
 @pytest.mark.slow
 def test_on_failure_record_records_the_runs_with_the_failed_outcome(tmp_path: Path, port: int) -> None:
     program = _short_program(tmp_path / "rope_short.yaml")
-    cfg = _session_config(port, program, **{"tracking.live_init.max_edge_error_mm": 1e-6,
+    cfg = _session_config(port, program, **{"tracking.live_init.max_edge_error": 1e-6,
                                             "tracking.live_init.attempts": 1,
                                             "tracking.live_init.on_failure": "record"})
     out = tmp_path / "session"
