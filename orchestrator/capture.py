@@ -14,7 +14,7 @@ import math
 import threading
 import uuid
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +40,7 @@ from tdcommon.types import RGBDFrame
 from tdcommon.wire import encode_frame, encode_json
 
 log = logging.getLogger(__name__)
+SIM_FIRST_FRAME_WAIT_S = 2.0  # simulated time, live-initialised run: wall s an episode's first frame waits
 
 
 class LowDisk(RuntimeError):
@@ -149,6 +150,31 @@ class EpisodeStream:
             if low is not None:
                 raise LowDisk(low)
 
+    def publish_frame(self, frame: RGBDFrame, station: Station) -> None:
+        """Publish one frame on the bus, paired with the joints at its capture time, without recording or
+        counting it (the live initialisation's frames: ``orchestrator.liveinit``)."""
+        self._station = station
+        paired = self.sync.pair(frame.frame_number, frame.device_stamp, frame.host_stamp)
+        if self.bus is not None:
+            self.bus.put(self._frame_key, encode_frame(frame, station.T_world_cam, station.camera.id, self.run_info,
+                                                       joint_state=paired))
+
+    def publish_states(self, station: Station) -> None:
+        """Sample both arms once and publish ``arms/state`` (for pairing too) without recording the sample."""
+        msg, _ = station.sample_state()
+        self.sync.states.add(msg)
+        if self.bus is not None:
+            self.bus.put(self._state_key, encode_json(msg))
+
+    def begin_init(self, run_id: str, info: dict[str, Any], label: str) -> None:
+        """Frames from now on are the live initialisation's ``run_id`` (published, not recorded): announced on the
+        bus like a run (the tracker follows it); the gate records nothing meanwhile."""
+        self.run_info = {**info, "run_id": run_id}
+        if self.gate is not None:
+            self.gate.begin_run("")
+        if self.monitor is not None:
+            self.monitor.announce_run(run_id, info, label)
+
     def begin_run(self, run_id: str, info: dict[str, Any], label: str) -> None:
         """Frames from now on belong to run ``run_id``: announced on the bus (the tracker follows it)."""
         self.run_info = {**info, "run_id": run_id}
@@ -203,7 +229,8 @@ class Resume:
 class RunContext:
     """What one run is recorded within: the session's clock, config, streams and stop conditions.
 
-    ``run_meta`` goes into every episode's metadata (attempt, plan_pass, session_started).
+    ``run_meta`` goes into every episode's metadata (attempt, plan_pass, session_started, live_init);
+    ``announce`` into the run's announcement (``track_id``: the live initialisation's track the worker keeps).
     """
 
     config: Config
@@ -217,6 +244,7 @@ class RunContext:
     state_rate: float
     run_meta: dict[str, Any]
     control: SessionMonitor | None = None  # pause / skip requests, state, where the run is
+    announce: dict[str, Any] = field(default_factory=dict)  # extra run-announcement fields (track_id)
 
 
 class RunCapture:
@@ -321,7 +349,8 @@ class RunCapture:
         stream.last_frame_number = None  # frames the camera made between runs were not meant to be recorded
         stream.begin_run(self.run_id, {
             "object": item.object.name, "category": item.object.category, "program": item.program,
-            "speed": item.speed, "run_index": item.index, "n_keypoints": item.object.n_keypoints,
+            "speed": item.speed, "run_index": item.index, "n_keypoints": item.object.n_keypoints, "phase": "record",
+            **ctx.announce,
         }, item.label)
         control = ctx.control
         poller = None if sim_time else StatePoller(lambda: stream.sample_states(station), ctx.state_rate)
@@ -358,6 +387,10 @@ class RunCapture:
                         next_state_t += 1.0 / ctx.state_rate
                 frame = station.read_frame()
                 stream.record_frame(frame, station)
+                if sim_time and episode_frames == 0 and stream.gate is not None and ctx.announce.get("track_id"):
+                    # the camera does not pace simulated time: let the (initialised) worker have each episode's
+                    # first frame before the next one replaces it on the ring channel
+                    stream.gate.wait_keypoints(frame.frame_number, SIM_FIRST_FRAME_WAIT_S)
                 episode_frames += 1
                 frames += 1
                 ctx.summary.recorded_seconds += 1.0 / fps

@@ -95,6 +95,52 @@ class PlanConfig(StrictModel):
         return v
 
 
+class LiveInitConfig(StrictModel):
+    """The paper's per-object initialisation before recording (``orchestrator.liveinit``): the arms at the
+    run's start pose (reference P0), a short move of both grippers to a second configuration (P1) and back,
+    the worker initialises from the difference, the session checks the result; retried, else the object's
+    runs are skipped. Runs only with the session's own tracking worker."""
+
+    enabled: bool = Field(True, description="run the initialisation before each object's first recorded run")
+    displacement: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.05), description="the second configuration: both TCPs moved by this vector (world frame), m")
+    move_seconds: float = Field(3.0, ge=0.3, le=10.0,
+                                description="requested time of each move (out and back; ruckig-timed), s")
+    hold_seconds: float = Field(
+        2.0, ge=0.2, le=10.0,
+        description="rest at the second configuration (P1), s: the worker initialises once the difference "
+                    "segmentation stops growing")
+    settle_seconds: float = Field(0.5, ge=0.0, le=10.0,
+                                  description="rest before the reference P0 and after the move back, s")
+    attempts: int = Field(3, ge=1, le=20, description="attempts per object before its runs are skipped")
+    check_frames: int = Field(
+        5, ge=1, le=300, description="worker results at rest after the move back that the check looks at, frames")
+    max_edge_error: float = Field(
+        0.15, gt=0.0, le=10.0,
+        description="the median edge-length RMSE of the checked results (the messages' abs_mm) must be below this "
+                    "fraction of the mean rest edge length (unitless: the same check for any object size)")
+    max_gripper_distance_m: float = Field(
+        0.04, gt=0.0, le=1.0, description="a keypoint must lie this close to each closed gripper's TCP, m")
+    worker_timeout_s: float = Field(
+        20.0, gt=0.0, le=3600.0,
+        description="wall time the worker may take to answer the reference frames, and to report a result "
+                    "after the move back, s")
+    on_failure: Literal["skip", "record"] = Field(
+        "skip", description="after the last failed attempt: skip the object's runs (journaled skipped, with the "
+                            "reason), or record them without a live initialisation")
+    reinitialise: bool = Field(
+        True, description="initialise again before a later run of the object when the worker restarted or its "
+                          "track was lost in the previous run")
+
+    @field_validator("displacement")
+    @classmethod
+    def _short_move(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        norm = sum(c * c for c in v) ** 0.5
+        if not 0.01 <= norm <= 0.15:
+            raise ValueError(f"must move the grippers by 0.01-0.15 m (a short move within reach), got {norm:.3f} m")
+        return v
+
+
 class TrackingConfig(StrictModel):
     """The tracking worker and the TrackDeform3D parameters that a lab may tune."""
 
@@ -118,6 +164,7 @@ class TrackingConfig(StrictModel):
         1.0, gt=0.0, le=600.0,
         description="frames without keypoints for at least this long (camera time, s) count as a tracking gap")
     final: bool = Field(True, description="after each run, track its frames offline and add /keypoints/final")
+    live_init: LiveInitConfig = Field(default_factory=LiveInitConfig)
 
     @field_validator("final_window")
     @classmethod

@@ -1,8 +1,9 @@
 """The session journal: an append-only record of the plan position, so a session resumes where it stopped.
 
 ``<out>/session.journal.jsonl`` holds one JSON object a line: a ``header`` with the plan's
-fingerprint, then ``session`` (a session started), ``start`` (a run item started) and ``run`` (a
-run item finished: done, failed or skipped) records. Each line is written with one ``write()``
+fingerprint, then ``session`` (a session started), ``start`` (a run item started), ``run`` (a
+run item finished: done, failed or skipped) and ``live_init`` (an object's live initialisation before a
+run: its attempts and outcome; not part of the plan position) records. Each line is written with one ``write()``
 and fsynced before the session goes on, so a record that was written survives a SIGKILL or a
 power cut; a torn last line (a crash mid-write) is ignored with a warning and cut off.
 """
@@ -265,6 +266,14 @@ class Journal:
         return {"type": "run", "pass": plan_pass, **key_fields(key), "outcome": outcome, "reason": reason,
                 "attempt": attempt, "session": session, "episodes": [p.name for p in episodes],
                 "wall_seconds": round(wall_seconds, 3), "finished": now_iso()}
+
+    def live_init(self, key: RunKey, *, plan_pass: int, session: int, outcome: str, reason: str | None,
+                  attempts: list[dict[str, Any]], seconds: float, track_id: str | None) -> None:
+        """Record an object's live initialisation (``orchestrator.liveinit``) before run ``key``: ``outcome``
+        ok, failed or stopped, the last reason, every attempt (outcome, reason, metrics, seconds)."""
+        self.append({"type": "live_init", "pass": plan_pass, **key_fields(key), "session": session,
+                     "outcome": outcome, "reason": reason, "attempts": attempts, "seconds": round(seconds, 3),
+                     "track_id": track_id, "finished": now_iso()})
 
     def run_finished(self, record: dict[str, Any], *, failed_reason: str | None = None) -> None:
         """Write a :meth:`run_record`; with ``failed_reason``, as a failed run with that reason instead."""

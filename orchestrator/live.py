@@ -3,7 +3,8 @@
 The session records a keypoint message only when it is well formed (``tdcommon.wire.check_keypoints``),
 carries this session's id and the id of a run the session announced, and is of a frame the session
 recorded in that run and has no keypoints for yet. Everything else is counted by kind and logged once
-per kind, then at most once a minute (a flood of bad messages must not flood the log).
+per kind, then at most once a minute (a flood of bad messages must not flood the log). The messages of a
+watched run (the live initialisation's frames, never recorded) go to its watcher instead.
 """
 
 from __future__ import annotations
@@ -89,6 +90,9 @@ class KeypointGate:
         self.current_run = ""
         self._runs: OrderedDict[str, _Run] = OrderedDict()
         self._episode: list[tuple[int, float]] = []  # (frame number, device stamp s) of the open episode
+        self._watched: dict[str, Callable[[dict[str, Any]], None]] = {}  # run id -> taker (not recorded)
+        self._retired: OrderedDict[str, None] = OrderedDict()  # watched runs that ended: late messages dropped
+        self.late_watched = 0  # messages of watched runs that came after the watch ended
         self._lock = threading.Lock()
 
     # ------------------------------------------------------------ capture side
@@ -139,6 +143,32 @@ class KeypointGate:
                       longest_gap_s=round(float(length[gap].max()) if gap.any() else 0.0, 3))
         return report
 
+    def watch(self, run_id: str, take: Callable[[dict[str, Any]], None] | None) -> None:
+        """Hand the checked messages of run ``run_id`` (this session's, not recorded: the live initialisation)
+        to ``take`` instead of rejecting them; ``take`` None stops it (the run's late messages are then dropped
+        quietly: the worker answers the last frames after the session has moved on)."""
+        with self._lock:
+            if take is None:
+                if self._watched.pop(run_id, None) is not None:
+                    self._retired[run_id] = None
+                    while len(self._retired) > 16:
+                        self._retired.popitem(last=False)
+            else:
+                self._watched[run_id] = take
+
+    def wait_keypoints(self, frame_number: int, timeout: float) -> bool:
+        """Wait (wall time, at most ``timeout`` s) until keypoints of the current run's ``frame_number`` are
+        accepted; False on timeout. Simulated time only: the camera does not pace the frames there."""
+        deadline = time.monotonic() + timeout
+        while True:
+            with self._lock:
+                run = self._runs.get(self.current_run)
+                if run is not None and frame_number in run.with_keypoints:
+                    return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.002)
+
     # ------------------------------------------------------------ bus side
     def accept(self, payload: bytes) -> dict[str, Any] | None:
         """The decoded message when it may be recorded, else None (counted by kind and logged, rate-limited)."""
@@ -156,6 +186,14 @@ class KeypointGate:
                                                "(a worker left over from an earlier session?)")
             return None
         fn = msg["frame_number"]
+        with self._lock:
+            take = self._watched.get(msg["run_id"])
+            late = take is None and msg["run_id"] in self._retired
+            self.late_watched += late
+        if take is not None:
+            take(msg)
+        if take is not None or late:
+            return None
         with self._lock:
             run = self._runs.get(msg["run_id"])
             if run is None:

@@ -27,6 +27,7 @@ from orchestrator.health import SessionMonitor
 from orchestrator.journal import Journal, RunKey, key_fields, now_iso, record_key, run_key
 from orchestrator.landing import Landing
 from orchestrator.live import KeypointGate
+from orchestrator.liveinit import InitOutcome, LiveInit
 from orchestrator.plan import RunItem, build_plan
 from orchestrator.progress import Progress
 from orchestrator.recorder import Recorder
@@ -87,6 +88,8 @@ class Session:
         self._reserve: SpaceReserve | None = None
         self.finishing = finishing or threading.Event()  # set once the last files and the summary are written
         self._landing: Landing | None = None  # manifest + final keypoints of the runs (orchestrator.landing)
+        self._live: LiveInit | None = None  # the per-object live initialisation (with the session's worker)
+        self._last_status: str | None = None  # status of the newest keypoints recorded in the current run
 
     # ------------------------------------------------------------------ public
     def run(self, max_seconds: float | None = None, loop: bool = False) -> SessionSummary:
@@ -228,6 +231,9 @@ class Session:
             if not self.supervisor.wait_ready(timeout, self.stop_event) and not self.stop_event.is_set():
                 monitor.incident("worker_not_ready", f"the tracking worker was not up after {timeout:.0f} s; "
                                  "recording without live keypoints until it is")
+            if self.config.tracking.live_init.enabled:
+                self._live = LiveInit(self.config, self.clock, self._stream, self.gate, self.stop_event,
+                                      self.progress, self.state_rate, set_state=monitor.set_state)
 
     def _finish(self, journal: Journal, t_wall: float) -> None:
         """Finish the episodes, journal the runs whose files are now final, fill and write the summary.
@@ -288,6 +294,7 @@ class Session:
             return
         msg = self.gate.accept(sample.payload.to_bytes())
         if msg is not None:
+            self._last_status = str(msg["status"])
             self._recorder.keypoints(msg)
 
     def _run_object(self, items: list[RunItem]) -> None:
@@ -309,7 +316,8 @@ class Session:
         try:
             if self.on_station is not None:
                 self.on_station(station)
-            for item in items:
+            init: InitOutcome | None = None
+            for n, item in enumerate(items):
                 if self._should_stop():
                     break
                 if station.broken:
@@ -317,22 +325,64 @@ class Session:
                     self.summary.runs_failed.append(f"{item.label}: {reason}")
                     self._journal_run(item, "skipped", reason, [], 0.0)
                     continue
-                self._run_journaled(item, station)
+                if self._live is not None and self._needs_init(init):
+                    init = self._live_initialise(station, item)
+                    if init.stopped:
+                        break
+                    if not init.ok and self.config.tracking.live_init.on_failure == "skip":
+                        reason = f"live initialisation failed after {len(init.attempts)} attempt(s): {init.reason}"
+                        for rest in items[n:]:  # journaled so the record says why; retried on resume
+                            self.summary.runs_skipped.append(f"{rest.label}: {reason}")
+                            self._journal_run(rest, "skipped", reason, [], 0.0)
+                        break
+                self._run_journaled(item, station, init)
         finally:
             station.close()
 
-    def _run_journaled(self, item: RunItem, station: Station) -> None:
+    def _needs_init(self, init: InitOutcome | None) -> bool:
+        """Whether the object's next run needs a (new) live initialisation: none yet, or (``reinitialise``) the
+        worker restarted since, or the previous run's newest recorded keypoints were not tracking."""
+        if init is None:
+            return True
+        if not init.ok or not self.config.tracking.live_init.reinitialise:
+            return False
+        restarts = self.supervisor.restarts if self.supervisor is not None else 0
+        return restarts != init.worker_restarts or self._last_status not in ("init", "tracking", "degraded")
+
+    def _live_initialise(self, station: Station, item: RunItem) -> InitOutcome:
+        """Run the live initialisation before ``item``; journal it, put it in the summary and the health."""
+        assert self._live is not None and self._journal is not None
+        journal = self._journal
+        supervisor = self.supervisor
+        self.progress.message(f"{item.object.name}: live initialisation (reference, a short move, check)")
+        init = self._live.run(station, item, lambda: supervisor.restarts if supervisor is not None else 0)
+        outcome = "stopped" if init.stopped else ("ok" if init.ok else "failed")
+        self._with_space(lambda: journal.live_init(
+            run_key(item), plan_pass=self._pass, session=self._session_index, outcome=outcome, reason=init.reason,
+            attempts=init.attempts, seconds=init.seconds, track_id=init.track_id))
+        if not init.stopped:
+            line = init.summary_line()
+            self.summary.live_init.append({"object": item.object.name, **init.meta(False), "line": line})
+            self.progress.message(f"{'' if init.ok else 'warning: '}live initialisation {line}")
+            if not init.ok and self.monitor is not None:
+                self.monitor.incident("live_init_failed", line)
+        return init
+
+    def _run_journaled(self, item: RunItem, station: Station, init: InitOutcome | None = None) -> None:
         """Run an item between a ``start`` and a ``run`` journal record (none when a stop cuts it short).
 
         Low disk space ends the attempt (journaled failed, with the reason); with ``output.on_low_disk:
         pause`` the item runs again once space returns, else the session stops. A recorder that failed
         on an I/O error stops the session: the run is journaled failed with the reason.
         """
-        while self._run_attempt(item, station):
+        while self._run_attempt(item, station, init):
             pass
 
-    def _run_attempt(self, item: RunItem, station: Station) -> bool:
-        """One attempt at an item; True when it is to be attempted again (space came back after a pause)."""
+    def _run_attempt(self, item: RunItem, station: Station, init: InitOutcome | None = None) -> bool:
+        """One attempt at an item; True when it is to be attempted again (space came back after a pause).
+
+        After a successful live initialisation ``init`` the run is announced with its track (the worker keeps
+        tracking) and every episode's metadata has ``live_init``."""
         key = run_key(item)
         self._flush_pending(final=False)
         monitor = self.monitor
@@ -345,17 +395,20 @@ class Session:
         journal, stream = self._journal, self._stream
         self._with_space(lambda: journal.run_started(key, plan_pass=self._pass, attempt=attempt,
                                                      session=self._session_index, first_episode=stream.next_index))
+        run_meta: dict[str, Any] = {
+            "attempt": attempt,  # 1 + earlier starts of this run in this plan pass (journal)
+            "plan_pass": self._pass,
+            "session_started": self._session_started,  # UTC: tells a re-run's episodes from the cut-short ones
+        }
+        if init is not None:
+            run_meta["live_init"] = init.meta(carried=init.for_run != item.label)
         ctx = RunContext(
             config=self.config, clock=self.clock, stream=self._stream, summary=self.summary, progress=self.progress,
             stop_event=self.stop_event, should_stop=self._should_stop, max_seconds=self._max_seconds,
-            state_rate=self.state_rate,
-            run_meta={
-                "attempt": attempt,  # 1 + earlier starts of this run in this plan pass (journal)
-                "plan_pass": self._pass,
-                "session_started": self._session_started,  # UTC: tells a re-run's episodes from the cut-short ones
-            },
-            control=monitor,
+            state_rate=self.state_rate, run_meta=run_meta, control=monitor,
+            announce={"track_id": init.track_id} if init is not None and init.ok else {},
         )
+        self._last_status = None
         capture = RunCapture(ctx, item, station)
         if monitor is not None:
             monitor.set_state("running", item.label)

@@ -41,6 +41,7 @@ class SessionSummary:
     wall_seconds: float = 0.0
     stopped_early: str | None = None
     final_keypoints: dict[str, Any] = field(default_factory=dict)  # orchestrator.landing: offline final tracking
+    live_init: list[dict[str, Any]] = field(default_factory=list)  # orchestrator.liveinit: one per initialisation
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-friendly dict."""
@@ -80,6 +81,8 @@ class SessionSummary:
                          + (f"; {fk['runs_failed']} run(s) failed" if fk["runs_failed"] else "")
                          + (f"; {fk['runs_pending']} run(s) pending (the next session on the folder tracks them)"
                             if fk["runs_pending"] else ""))
+        for init in self.live_init:
+            lines.append(f"live init        : {init['line']}")
         for label in self.runs_cut_short:
             lines.append(f"cut short        : {label}")
         if self.keypoints_recorded or self.tracking_gaps:

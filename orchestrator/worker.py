@@ -3,9 +3,14 @@
 It subscribes to ``<prefix>/<station>/cam/<id>/frame``, ``arms/state`` and the session's run
 announcement ``session/run``, runs :class:`tracking.pipeline.LivePipeline` and publishes
 ``<prefix>/<station>/keypoints`` (JSON, see ``tdcommon.wire.encode_keypoints``) stamped with the
-announced session and run ids. It starts a new tracker only when the session announces another run
-(never on a frame's own header), declares the liveliness token ``worker/alive/<host>-<pid>`` once it
-is ready, and, started by a session, dies with it (``PR_SET_PDEATHSIG`` and a parent-pid check).
+announced session and run ids. It starts a new tracker only when the session announces another track
+(``track_id``, default the run id; never on a frame's own header): the session's live initialisation
+(``orchestrator.liveinit``) announces its frames as a run of their own with the track id the object's
+recorded runs then carry, so the tracker initialised on them goes on into the recording. A frame whose
+header names another run than the announced one makes the worker ask the session (``session/run``,
+a get) once, in case that announcement is still on its way. It declares the liveliness token
+``worker/alive/<host>-<pid>`` once it is ready, and, started by a session, dies with it
+(``PR_SET_PDEATHSIG`` and a parent-pid check).
 Run it as ``trackdeform worker CONFIG`` or ``python -m orchestrator.worker CONFIG``.
 """
 
@@ -87,7 +92,7 @@ class WorkerStats:
     busy_s: float = 0.0
     no_run: int = 0  # frames dropped because no run was announced (yet)
     other_run: int = 0  # frames whose header names another run than the announced one
-    runs: int = 0  # trackers started (one per announced run)
+    runs: int = 0  # trackers started (one per announced track)
 
 
 def keypoint_message(out: PipelineOutput, frame_number: int, stamp: float, run: dict[str, Any], ms: float) -> bytes:
@@ -156,19 +161,25 @@ class Worker:
         self.parent_pid = parent_pid
         self.malformed = KindCounter("frame not tracked", log)
         self.pipeline: LivePipeline | None = None
-        self._run_id: str | None = None  # the run the pipeline tracks
+        self._track_id: str | None = None  # the track the pipeline follows (announced track_id, else run_id)
+        self._asked: tuple[str, float] = ("", -1e9)  # the header run id last asked about, monotonic s
+        self._reference_gap: int | None = None  # the pipeline's own, while a P0 / P1 initialisation overrides it
         self._announced: dict[str, Any] | None = None  # the newest run announcement of our session
         self._last_frame: int | None = None
         self.stats = WorkerStats()
-        run_key = self.bus.key("session", "run")
-        self.bus.subscribe(run_key, callback=self._on_run)
-        try:  # the run under way when this worker starts (a restarted worker does not wait for the next one)
-            for payload in self.bus.get(run_key, timeout=2.0):
+        self._run_key = self.bus.key("session", "run")
+        self.bus.subscribe(self._run_key, callback=self._on_run)
+        self._query_announcement(2.0)  # the run under way (a restarted worker does not wait for the next one)
+        self.id = worker_id()
+        self.bus.declare_token(self.bus.key("worker", "alive", self.id))  # ready: the supervisor sees us up
+
+    def _query_announcement(self, timeout: float) -> None:
+        """Ask the session for its current run announcement (``session/run`` get) and follow it."""
+        try:
+            for payload in self.bus.get(self._run_key, timeout=timeout):
                 self._take_announcement(payload)
         except Exception as e:  # no session yet: its announcement comes by the subscriber
             log.debug("no run announcement to query: %s", e)
-        self.id = worker_id()
-        self.bus.declare_token(self.bus.key("worker", "alive", self.id))  # ready: the supervisor sees us up
 
     def _on_run(self, sample: Any) -> None:
         self._take_announcement(sample.payload.to_bytes())
@@ -200,16 +211,41 @@ class Worker:
             self._state = msg
 
     def _pipeline_for(self, run: dict[str, Any], K: np.ndarray, T: np.ndarray) -> LivePipeline:
-        """The tracker of the announced ``run``: a new one only when the announced run id changes."""
-        if self.pipeline is None or run["run_id"] != self._run_id:
+        """The tracker of the announced ``run``: a new one only when the announced track changes
+        (``track_id``, else the run id): a run announced with the track of the live initialisation before it
+        keeps that initialisation (warm start)."""
+        track = str(run.get("track_id") or run["run_id"])
+        if self.pipeline is None or track != self._track_id:
             category = run.get("category")
             params = tracking_params(self.config.tracking, category, run.get("n_keypoints"))
             self.pipeline = LivePipeline(params, K, T, DIMENSION.get(category))
-            self._run_id = run["run_id"]
+            if run.get("phase") == "init":
+                # the session's P0 / P1 initialisation: P1 (the arms holding still at the second configuration)
+                # is differenced against the reference P0 alone; recent frames become references again once
+                # it is initialised (see step), for a re-initialisation after a lost track
+                self._reference_gap = self.pipeline.reference_gap
+                self.pipeline.reference_gap = 1 << 30
+            self._track_id = track
             self.stats.runs += 1
-            log.info("new program run %s (%s): tracking %s (%s)", run.get("run_index"), run["run_id"],
-                     run.get("object"), category)
+            log.info("new track %s for %s run %s (%s): tracking %s (%s)", track, run.get("phase", "record"),
+                     run.get("run_index"), run["run_id"], run.get("object"), category)
         return self.pipeline
+
+    def _announcement_for(self, header_run: str) -> dict[str, Any] | None:
+        """The announced run, after asking the session once when a frame's header names another run (its
+        announcement may trail the frame); at most one question every 0.5 s."""
+        with self._lock:
+            run = self._announced
+        if not header_run or (run is not None and header_run == run["run_id"]):
+            return run
+        asked, when = self._asked
+        now = time.monotonic()
+        if header_run != asked and now - when >= 0.5:
+            self._asked = (header_run, now)
+            self._query_announcement(0.5)
+            with self._lock:
+                run = self._announced
+        return run
 
     def step(self) -> bool:
         """Process the newest frame if there is one; False when none was waiting."""
@@ -228,8 +264,8 @@ class Worker:
         if self._last_frame is not None and frame.frame_number > self._last_frame + 1:
             self.stats.skipped += frame.frame_number - self._last_frame - 1  # ring channel: newest wins
         self._last_frame = frame.frame_number
+        run = self._announcement_for(str(msg.run.get("run_id", "")))
         with self._lock:
-            run = self._announced
             state = msg.joint_state or self._state  # the arms at the frame's capture time, when paired
         if run is None:
             self.stats.no_run += 1
@@ -240,11 +276,22 @@ class Worker:
                       run["run_id"])
             return True
         pipe = self._pipeline_for(run, frame.intrinsics.K, msg.T_world_cam)
+        if run.get("phase") == "init" and msg.run.get("init_step") == "move" and pipe.state == "waiting":
+            # on the way from P0 to P1 the object is still moving: the initialisation waits for P1
+            out = PipelineOutput("waiting", np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64),
+                                 float("nan"), float("nan"), 0, note="moving to the second configuration P1")
+            ms = (time.perf_counter() - t0) * 1e3
+            self.bus.put(self.key_out, keypoint_message(out, frame.frame_number, frame.device_stamp, run, ms))
+            self.stats.frames += 1
+            self.stats.published += 1
+            return True
         V = F = tcp = closed = None
         if state is not None:
             V, F, tcp, closed = self.arms.from_state(state)
         before = pipe.state
         out = pipe.process(frame.depth_m(), V, F, tcp, closed)
+        if self._reference_gap is not None and pipe.state == "tracking":
+            pipe.reference_gap, self._reference_gap = self._reference_gap, None
         if out.status == "init":
             self.stats.initialisations += 1
         if out.status == "lost":

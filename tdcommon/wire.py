@@ -20,7 +20,9 @@ Keys (``<prefix>/<station>/...``):
 - ``keypoints``: JSON, see :func:`encode_keypoints`; its JSON Schema is :data:`KEYPOINTS_JSON_SCHEMA`
   (also ``schemas/keypoints.schema.json`` and, from a live session, a get on ``schema/keypoints``).
 - ``session/run``: JSON :func:`run_announcement`, the run the session records now (the tracker
-  switches runs on it alone).
+  switches tracks on it alone: a new ``track_id``, else a new ``run_id``). ``phase`` is ``record``, or
+  ``init`` for the live initialisation's frames (published, never recorded; each frame header's
+  ``init_step`` says p0, move, p1, back or rest).
 """
 
 from __future__ import annotations
@@ -306,5 +308,5 @@ def check_keypoints(msg: Any) -> tuple[str, str] | None:
 
 def run_announcement(*, session_id: str, run_id: str, run: dict[str, Any], stamp: float) -> dict[str, Any]:
     """The ``session/run`` message: which run the session records now (object, category, program, speed,
-    run_index, n_keypoints in ``run``); ``run_id`` "" between runs. ``stamp``: host time, s."""
+    run_index, n_keypoints, phase, track_id in ``run``); ``run_id`` "" between runs. ``stamp``: host time, s."""
     return {"schema": "trackdeform.Run/1", "session_id": session_id, "run_id": run_id, "stamp": stamp, **run}

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -68,8 +69,12 @@ def test_watch_prints_live_keypoints(tmp_path: Path, port: int) -> None:
     demo = subprocess.Popen([*CLI, "demo", "--seconds", "120", "--out", str(out), "--port", str(port)],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        watch = subprocess.run([*CLI, "watch", "--connect", endpoint, "--count", "40", "--seconds", "150", "--json"],
+        # 450 sets: the first ~300 are the live initialisation's (reference, the move out, waiting for P1, ...)
+        watch = subprocess.run([*CLI, "watch", "--connect", endpoint, "--count", "450", "--seconds", "150", "--json"],
                                capture_output=True, text=True, timeout=200)
+        deadline = time.monotonic() + 120  # the first sets may be the live initialisation's: stop once it records
+        while not list(out.glob("episode_*.mcap*")) and time.monotonic() < deadline and demo.poll() is None:
+            time.sleep(0.2)
         stop = subprocess.run([*CLI, "ctl", "stop", "--connect", endpoint, "--station", "mock"],
                               capture_output=True, text=True, timeout=60)
         demo_out, _ = demo.communicate(timeout=120)
@@ -79,7 +84,7 @@ def test_watch_prints_live_keypoints(tmp_path: Path, port: int) -> None:
             demo.wait()
     msgs = [json.loads(ln) for ln in watch.stdout.splitlines() if ln.startswith("{")]
     worker_log = (out / "worker.log").read_text() if (out / "worker.log").exists() else ""
-    assert len(msgs) == 40, watch.stderr + demo_out + worker_log
+    assert len(msgs) == 450, watch.stderr + demo_out + worker_log
     assert stop.returncode == 0 and "stopping" in stop.stdout, stop.stdout + stop.stderr
     assert demo.returncode == 0, demo_out
     session_ids = {m["session_id"] for m in msgs}
