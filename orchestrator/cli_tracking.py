@@ -102,6 +102,31 @@ def _arm_geometry(seq: Any, i: int, arms: Any) -> tuple[Any, Any, Any, Any]:
     return None, None, None, None
 
 
+class _Background:
+    """Run ``job`` in a daemon thread; ``raise_if_failed`` re-raises its DatasetError, ``wait`` returns it."""
+
+    def __init__(self, job: Callable[[], None]) -> None:
+        self.error: Exception | None = None
+        self._thread = threading.Thread(target=self._run, args=(job,), name="verify", daemon=True)
+        self._thread.start()
+
+    def _run(self, job: Callable[[], None]) -> None:
+        try:
+            job()
+        except Exception as e:  # noqa: BLE001 - reported by the thread that waits
+            self.error = e
+
+    def raise_if_failed(self) -> None:
+        """Raise the job's exception if it has failed already."""
+        if self.error is not None:
+            raise self.error
+
+    def wait(self) -> Exception | None:
+        """Wait for the job; its exception or None."""
+        self._thread.join()
+        return self.error
+
+
 def track_sequence(
     seq: Any, params: Any, kind: str | None, progress: bool = True, on_frame: Callable[[int], None] | None = None
 ) -> dict[str, Any]:
@@ -111,6 +136,7 @@ def track_sequence(
     or None), topology, metrics. The frames without keypoints are kept in memory for the second pass (their
     uint16 depth, ~2 MB each at 1280x720). on_frame(i) is called after the forward pass's frame i."""
     from orchestrator.worker import ArmModel
+    from tdrecord.sequence import iter_depth
     from tracking.metrics import sequence_summary, surface_error_mm
     from tracking.offline import FrameInput, fill_missing
     from tracking.pipeline import LivePipeline
@@ -125,7 +151,7 @@ def track_sequence(
     abs_mm, cd_mm, gt_mm, ms = [], [], [], []
     topology = None
     t_start = time.monotonic()
-    for i, frame in enumerate(seq.frames):
+    for i, frame in enumerate(iter_depth(seq.frames)):  # depth only: tracking reads no colour
         V, F, tcp, closed = _arm_geometry(seq, i, arms)
         t0 = time.perf_counter()
         out = pipe.process(frame.depth_m(), V, F, tcp, closed)
@@ -188,7 +214,7 @@ def cmd_track(args: argparse.Namespace) -> int:
     from tracking.tracker import smooth_symmetric
 
     try:
-        verify_sequence_files(args.input)  # a corrupt npz is refused before any frame is tracked
+        verify_sequence_files(args.input, structure_only=True)  # a truncated npz is refused before reading it
         seq = read_sequence(args.input)
     except (DatasetError, FileNotFoundError) as e:
         print(f"error: {e}", file=sys.stderr)
@@ -199,13 +225,28 @@ def cmd_track(args: argparse.Namespace) -> int:
     category = args.category or seq.metadata.get("category")
     config = load_config(args.config)
     params = tracking_params(config.tracking, category, args.keypoints or seq.metadata.get("n_keypoints"))
+    # The CRCs of what tracking does not stream (colour, poses, calibration) are checked beside it; the depth
+    # stream checks its own. A corrupt file stops the run at the next frame and nothing is written.
+    check = _Background(lambda: verify_sequence_files(args.input, except_streamed=True))
     try:
-        result = track_sequence(seq, params, DIMENSION.get(category or ""), progress=not args.json)
-    except RuntimeError as e:
-        print(f"error: {args.input}: {e}", file=sys.stderr)
-        return 1
-    except (DatasetError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:  # damage found mid-file
-        print(f"error: {args.input}: unreadable part ({type(e).__name__}: {e})", file=sys.stderr)
+        result = track_sequence(seq, params, DIMENSION.get(category or ""), progress=not args.json,
+                                on_frame=lambda _i: check.raise_if_failed())
+    except Exception as e:
+        if (bad := check.wait()) is not None:
+            print(f"error: {bad}", file=sys.stderr)
+            return 2
+        if isinstance(e, RuntimeError):
+            print(f"error: {args.input}: {e}", file=sys.stderr)
+            return 1
+        if isinstance(e, DatasetError):
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        if isinstance(e, (OSError, EOFError, zipfile.BadZipFile, zlib.error)):  # damage found mid-file
+            print(f"error: {args.input}: unreadable part ({type(e).__name__}: {e})", file=sys.stderr)
+            return 2
+        raise
+    if (bad := check.wait()) is not None:
+        print(f"error: {bad}", file=sys.stderr)
         return 2
     raw, topo = result["raw"], result["topology"]
     final = raw.copy()

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -24,9 +27,11 @@ from tdrecord import (
     read_paper_layout,
     read_reference_npz,
     read_sequence,
+    verify_sequence_files,
     write_paper_layout,
     write_reference_npz,
 )
+from tdrecord.sequence import iter_depth, read_ahead
 from tests.conftest import make_frame
 
 RAW_COLOR = ColorOutputConfig(codec="raw")
@@ -240,6 +245,62 @@ def test_paper_layout_round_trip(tmp_path: Path, compress: bool) -> None:
     np.testing.assert_allclose(seq.tcp_right, inv_l @ kw["tcp_right"], atol=1e-9)
     np.testing.assert_allclose(seq.q_right, -kw["q_left"])
     assert list(seq.frames.iter_from(4))[0].frame_number == 4
+
+
+@pytest.mark.parametrize("compress", [False, True])
+def test_paper_layout_depth_only_stream_matches_frames(tmp_path: Path, compress: bool) -> None:
+    folder, frames, _ = _paper(tmp_path, compress=compress)
+    seq = read_sequence(folder)
+    got = list(seq.frames.iter_depth())  # depth only, decoded by a reader thread
+    assert [d.frame_number for d in got] == list(range(5)) and not hasattr(got[0], "color")
+    for d, ref in zip(got, frames, strict=True):
+        assert d.depth.dtype == np.uint16 and d.depth_scale == ref.depth_scale
+        np.testing.assert_array_equal(d.depth_m(), ref.depth_m())
+    assert [d.frame_number for d in seq.frames.iter_depth(3)] == [3, 4]
+    assert [d.frame_number for d in iter_depth(frames)] == list(range(5))  # a list: the frames themselves
+
+
+def test_paper_layout_depth_stream_checks_its_crc(tmp_path: Path) -> None:
+    folder, frames, _ = _paper(tmp_path)  # stored: a flipped byte decodes, only the CRC notices
+    rgbd = folder / "rgbd.npz"
+    data = bytearray(rgbd.read_bytes())
+    at = bytes(data).index(frames[2].depth.astype("<u2").tobytes())
+    data[at + 7] ^= 0xFF
+    rgbd.write_bytes(bytes(data))
+    seq = read_sequence(folder)
+    stream = seq.frames.iter_depth()
+    assert [d.frame_number for d in itertools.islice(stream, 4)] == [0, 1, 2, 3]  # frames come as they decode
+    with pytest.raises(DatasetError, match=r"rgbd\.npz: corrupt \.npz: member 'depth\.npy'.*CRC"):
+        next(stream)  # ... and the end of the member checks them
+    verify_sequence_files(folder, except_streamed=True)  # what the stream checks is left to it
+    with pytest.raises(DatasetError, match="'depth.npy' fails its CRC check"):
+        verify_sequence_files(folder)
+
+
+def test_read_ahead_forwards_errors_and_stops_its_reader() -> None:
+    made: list[int] = []
+
+    def items() -> Iterator[int]:
+        for i in range(1000):
+            made.append(i)
+            if i == 3 and fail:
+                raise ValueError("bad row 3")
+            yield i
+
+    before = threading.active_count()
+    fail = True
+    stream = read_ahead(items, depth=2)
+    assert [next(stream) for _ in range(3)] == [0, 1, 2]
+    with pytest.raises(ValueError, match="bad row 3"):
+        next(stream)
+    fail = False
+    made.clear()
+    stream = read_ahead(items, depth=2)
+    assert next(stream) == 0
+    stream.close()  # the reader stops: at most depth + 2 items were made
+    n = len(made)
+    assert n <= 4 and threading.active_count() == before
+    assert [t.name for t in threading.enumerate()].count("read-ahead") == 0
 
 
 def test_paper_layout_convention_matches_published_code(tmp_path: Path) -> None:
