@@ -12,7 +12,7 @@ import zipfile
 import zlib
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -127,14 +127,52 @@ class _Background:
         return self.error
 
 
+class _Pending(NamedTuple):
+    """A frame the forward pass left without keypoints, as compact as exact: the decimated depth in its
+    recorded units (uint16, converted as ``depth_m`` converts the full image, so the float32 values are the
+    ones the forward pass used), its arm mask bit-packed, the TCPs (G, 3) m and closed flags (G,) bool."""
+
+    depth: np.ndarray
+    scale: float
+    arm_bits: np.ndarray | None
+    shape: tuple[int, int]
+    tcp: np.ndarray | None
+    closed: np.ndarray | None
+
+    @staticmethod
+    def keep(prepared: Any, depth: np.ndarray, scale: float, stride: int, tcp: np.ndarray | None,
+             closed: np.ndarray | None) -> _Pending:
+        arm = None if prepared.arm is None else np.packbits(prepared.arm, axis=None)
+        dec = np.ascontiguousarray(depth[::stride, ::stride])
+        p = _Pending(dec, scale, arm, prepared.depth.shape, tcp, closed)
+        if dec.dtype.kind not in "ui" or dec.shape != p.shape or not np.array_equal(p.prepared().depth,
+                                                                                  prepared.depth):
+            p = p._replace(depth=prepared.depth.copy(), scale=1.0)  # not so exact: keep the float32 image
+        return p
+
+    def prepared(self) -> Any:
+        from tracking.pipeline import PreparedFrame
+
+        if self.depth.dtype == np.float32:
+            depth = self.depth
+        else:
+            depth = self.depth.astype(np.float32) * np.float32(self.scale)
+        arm = None
+        if self.arm_bits is not None:
+            n = self.shape[0] * self.shape[1]
+            arm = np.unpackbits(self.arm_bits, count=n).astype(bool).reshape(self.shape)
+        return PreparedFrame(depth, arm)
+
+
 def track_sequence(
     seq: Any, params: Any, kind: str | None, progress: bool = True, on_frame: Callable[[int], None] | None = None
 ) -> dict[str, Any]:
     """Run the pipeline over every frame, then fill the frames left without keypoints (before initialisation,
     after a loss) by tracking from their tracked neighbour (``tracking.offline.fill_missing``); returns raw
     keypoints (T, N, 3) m (NaN only where no frame was ever tracked), grasp indices (T entries (G,) int64
-    or None), topology, metrics. The frames without keypoints are kept in memory for the second pass (their
-    uint16 depth, ~2 MB each at 1280x720). on_frame(i) is called after the forward pass's frame i."""
+    or None), topology, metrics. The frames without keypoints are kept in memory for the second pass as the
+    forward pass prepared them (decimated uint16 depth and bit-packed arm mask, ~120 kB each at 1280x720
+    whatever the clip's length), with their TCPs. on_frame(i) is called after the forward pass's frame i."""
     from orchestrator.worker import ArmModel
     from tdrecord.sequence import iter_depth
     from tracking.metrics import sequence_summary, surface_error_mm
@@ -146,7 +184,7 @@ def track_sequence(
     T = len(seq)
     raw: list[np.ndarray | None] = []
     grasp: list[np.ndarray | None] = []
-    pending: dict[int, tuple[np.ndarray, float]] = {}  # frame -> (depth uint16, scale) of frames without keypoints
+    pending: dict[int, _Pending] = {}  # the frames without keypoints, for the second pass
     statuses: list[str] = []
     abs_mm, cd_mm, gt_mm, ms = [], [], [], []
     topology = None
@@ -163,7 +201,7 @@ def track_sequence(
         raw.append(out.keypoints if same else None)
         grasp.append(out.grasp_idx if same else None)
         if not same:
-            pending[i] = (frame.depth, frame.depth_scale)
+            pending[i] = _Pending.keep(out.prepared, frame.depth, frame.depth_scale, pipe.stride, tcp, closed)
         if same and out.status != "lost":
             abs_mm.append(out.abs_mm)
             cd_mm.append(out.cd_mm)
@@ -183,9 +221,8 @@ def track_sequence(
         )
 
     def frame_input(i: int) -> FrameInput:
-        depth, scale = pending[i]
-        V, F, tcp, closed = _arm_geometry(seq, i, arms)
-        return FrameInput(depth.astype(np.float32) * np.float32(scale), V, F, tcp, closed)
+        p = pending.pop(i)
+        return FrameInput(None, tcp=p.tcp, closed=p.closed, prepared=p.prepared())
 
     assert pipe.background is not None  # set at initialisation
     filled = fill_missing(raw, grasp, topology, pipe.background,
