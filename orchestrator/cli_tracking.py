@@ -191,8 +191,13 @@ def track_sequence(
     t_start = time.monotonic()
     for i, frame in enumerate(iter_depth(seq.frames)):  # depth only: tracking reads no colour
         V, F, tcp, closed = _arm_geometry(seq, i, arms)
+        full = None if pipe.state == "tracking" else frame.depth_m()  # only initialising needs the whole image
         t0 = time.perf_counter()
-        out = pipe.process(frame.depth_m(), V, F, tcp, closed)
+        if full is None:  # decimate the recorded image, then scale it (the float32 values decimate() gives)
+            prepared = pipe.prepare(frame.depth, V, F, depth_scale=frame.depth_scale)
+            out = pipe.process(None, tcp=tcp, gripper_closed=closed, prepared=prepared)
+        else:
+            out = pipe.process(full, V, F, tcp, closed)
         ms.append((time.perf_counter() - t0) * 1e3)
         statuses.append(out.status)
         if len(out.keypoints) and topology is None:

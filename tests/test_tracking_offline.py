@@ -88,3 +88,16 @@ def test_prepared_frame_alone_cannot_initialise() -> None:
         pipe.process(None, prepared=first.prepared)
     with pytest.raises(ValueError, match="no depth and no prepared frame"):
         pipe.process(None)
+
+
+def test_prepare_from_the_recorded_image_equals_prepare_from_metres() -> None:
+    """Decimating the uint16 image before scaling it gives the float32 values decimating depth_m() gives."""
+    K, T = S.default_camera(1280, 720)
+    pipe = LivePipeline(P, K, T, "1d")
+    assert pipe.stride > 1
+    raw = np.random.default_rng(3).integers(0, 4000, (720, 1280)).astype(np.uint16)
+    for scale in (0.001, 0.000125, 1 / 3000):
+        a = pipe.prepare(raw.astype(np.float32) * np.float32(scale))
+        b = pipe.prepare(raw, depth_scale=scale)
+        assert b.depth.dtype == np.float32 and b.depth.flags.c_contiguous
+        np.testing.assert_array_equal(a.depth, b.depth)

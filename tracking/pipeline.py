@@ -190,11 +190,19 @@ class LivePipeline:
         )
 
     def prepare(
-        self, depth: np.ndarray, arm_vertices: np.ndarray | None = None, arm_triangles: np.ndarray | None = None
+        self, depth: np.ndarray, arm_vertices: np.ndarray | None = None, arm_triangles: np.ndarray | None = None,
+        depth_scale: float | None = None,
     ) -> PreparedFrame:
         """A frame's decimated depth and arm mask (``PreparedFrame``) from its depth (H, W) float32 m and arm
-        mesh (V, 3) m world + (F, 3) int: stateless, the first step of ``process``."""
-        dec = self.decimate(depth)
+        mesh (V, 3) m world + (F, 3) int: stateless, the first step of ``process``. With ``depth_scale`` (m per
+        unit) depth is the recorded integer image, decimated before it is scaled (as ``RGBDFrame.depth_m``
+        scales it: the same float32 values without converting the whole image)."""
+        if depth_scale is None:
+            dec = self.decimate(depth)
+        else:
+            dec = np.ascontiguousarray(depth[:: self.stride, :: self.stride]).astype(np.float32) * np.float32(
+                depth_scale
+            )
         return PreparedFrame(dec, self.arm_mask(dec, arm_vertices, arm_triangles))
 
     def process(
