@@ -6,6 +6,7 @@ A :class:`Sequence` holds per-frame arrays in the world frame (SI units) and a l
 
 from __future__ import annotations
 
+import os
 import queue
 import threading
 from collections.abc import Callable, Iterable, Iterator
@@ -79,13 +80,24 @@ def iter_depth(frames: Iterable[RGBDFrame]) -> Iterator[DepthImage | RGBDFrame]:
 _Item = TypeVar("_Item")
 
 
+def usable_cores() -> int:
+    """The number of CPU cores this process may run on (its affinity mask where the OS has one)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
 def read_ahead(make: Callable[[], Iterator[_Item]], depth: int = 4) -> Iterator[_Item]:
     """The items of ``make()``, produced by a reader thread up to ``depth`` items ahead of the consumer.
 
     Decompression (zlib) and file reads release the GIL, so a clip is decoded while the consumer computes;
     at most ``depth + 1`` items are held. An exception in the reader is raised to the consumer at the point
-    of the stream where it happened; closing the returned generator stops the reader.
+    of the stream where it happened; closing the returned generator stops the reader. A process allowed
+    only one core gets the items made inline instead: a thread would only interleave with the consumer
+    there (and its decoding would land inside the consumer's timed steps).
     """
+    if usable_cores() <= 1:
+        return make()
     q: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=max(1, int(depth)))
     stop = threading.Event()
 

@@ -408,3 +408,17 @@ def test_episode_metadata_is_json(tmp_path: Path) -> None:
     """The Sequence metadata stays JSON-serialisable (for summaries and exports)."""
     seq = read_episodes(_episode(tmp_path / "e.mcap", range(2)).path)
     json.dumps(seq.metadata)
+
+
+def test_read_ahead_on_one_core_makes_items_inline(monkeypatch: pytest.MonkeyPatch) -> None:
+    import tdrecord.sequence as seqmod
+
+    monkeypatch.setattr(seqmod, "usable_cores", lambda: 1)
+    names: list[str] = []
+
+    def items() -> Iterator[int]:
+        for i in range(3):
+            names.append(threading.current_thread().name)
+            yield i
+
+    assert list(read_ahead(items)) == [0, 1, 2] and set(names) == {threading.current_thread().name}
