@@ -111,6 +111,9 @@ class _Background:
         self._thread.start()
 
     def _run(self, job: Callable[[], None]) -> None:
+        from tdrecord.sequence import lower_thread_priority
+
+        lower_thread_priority()  # background work: the tracking thread comes first on a busy machine
         try:
             job()
         except Exception as e:  # noqa: BLE001 - reported by the thread that waits

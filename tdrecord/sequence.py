@@ -80,6 +80,18 @@ def iter_depth(frames: Iterable[RGBDFrame]) -> Iterator[DepthImage | RGBDFrame]:
 _Item = TypeVar("_Item")
 
 
+def lower_thread_priority(steps: int = 5) -> None:
+    """Make the calling thread yield to the others of its process when the cores are busy (Linux: a thread's
+    nice value is its own; raising it needs no privilege); elsewhere a no-op."""
+    if not hasattr(os, "setpriority"):
+        return
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + steps))
+    except OSError:
+        pass
+
+
 def usable_cores() -> int:
     """The number of CPU cores this process may run on (its affinity mask where the OS has one)."""
     if hasattr(os, "sched_getaffinity"):
@@ -111,6 +123,7 @@ def read_ahead(make: Callable[[], Iterator[_Item]], depth: int = 4) -> Iterator[
         return False
 
     def run() -> None:
+        lower_thread_priority()  # read-ahead is background work: the consumer's steps come first
         it = make()
         try:
             for item in it:

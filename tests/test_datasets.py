@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import json
 import logging
+import os
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -422,3 +423,23 @@ def test_read_ahead_on_one_core_makes_items_inline(monkeypatch: pytest.MonkeyPat
             yield i
 
     assert list(read_ahead(items)) == [0, 1, 2] and set(names) == {threading.current_thread().name}
+
+
+@pytest.mark.skipif(not hasattr(os, "setpriority"), reason="per-thread nice values are a Linux feature")
+def test_background_threads_lower_only_their_own_priority() -> None:
+    from tdrecord.sequence import lower_thread_priority
+
+    def nice() -> int:
+        return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    main_before, seen = nice(), []
+
+    def job() -> None:
+        before = nice()
+        lower_thread_priority(3)
+        seen.append(nice() - before)
+
+    t = threading.Thread(target=job)
+    t.start()
+    t.join()
+    assert seen in ([3], [19 - main_before]) and nice() == main_before
