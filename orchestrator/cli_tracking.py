@@ -113,7 +113,9 @@ class _Background:
     def _run(self, job: Callable[[], None]) -> None:
         from tdrecord.sequence import lower_thread_priority
 
-        lower_thread_priority()  # background work: the tracking thread comes first on a busy machine
+        # off the critical path (the depth reader is on it: it keeps the normal priority), so on a busy
+        # machine the tracking thread comes first
+        lower_thread_priority()
         try:
             job()
         except Exception as e:  # noqa: BLE001 - reported by the thread that waits

@@ -123,7 +123,6 @@ def read_ahead(make: Callable[[], Iterator[_Item]], depth: int = 4) -> Iterator[
         return False
 
     def run() -> None:
-        lower_thread_priority()  # read-ahead is background work: the consumer's steps come first
         it = make()
         try:
             for item in it:
