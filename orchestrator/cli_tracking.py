@@ -103,7 +103,7 @@ def _arm_geometry(seq: Any, i: int, arms: Any) -> tuple[Any, Any, Any, Any]:
 
 
 class _Background:
-    """Run ``job`` in a daemon thread; ``raise_if_failed`` re-raises its DatasetError, ``wait`` returns it."""
+    """Run ``job`` in a daemon thread; ``raise_if_failed`` re-raises its exception, ``wait`` returns it."""
 
     def __init__(self, job: Callable[[], None]) -> None:
         self.error: Exception | None = None
