@@ -1,7 +1,7 @@
 """``trackdeform track`` on the independent test bed (``../shared/testbed``): generate, track, score, one table.
 
 Usage: .venv/bin/python benchmarks/testbed.py [--cache DIR] [--testbed DIR] [--testbed-python PY]
-       [--set dev|variants|all] [--only NAME[,NAME]] [--list] [--json]
+       [--set dev|variants|all] [--only NAME[,NAME]] [--list] [--json] [--cores N]
 
 The test bed is a second simulated station (MuJoCo physics, its own renderer, stereo depth noise) with
 its own scorer; see its README. This script
@@ -18,8 +18,11 @@ its own scorer; see its README. This script
 Columns: missing = frames with a missing keypoint (%); object / anchors / coverage / Abs / CD in mm,
 E<5 and F<10 in % of all frames (the scorer's definitions); ms/frame = the tracker's median per-frame
 time (``tracking_metrics.json``), fill ms/frame = the same for the frames tracked backwards (or
-forwards after a loss) from a tracked neighbour, wall ms/frame = the whole ``track`` command's wall time per frame
-(reading, both passes, writing).
+forwards after a loss) from a tracked neighbour, wall ms/frame = the whole ``track`` command's wall time per
+frame (start-up, reading the clip, both passes, writing: what a lab waits for), cpu ms/frame = the CPU time
+(user + system, all its threads) the command used per frame, which a busy shared machine inflates less than
+the wall time. ``--cores N`` runs each ``track`` command on N cores of this process's affinity mask (1: the
+issue's one-core figures).
 
 The default set (``--set all``) is the five-sequence development set plus the variants below (camera
 from the side and from above, rope lengths 0.8-1.0 m, radii 4-7 mm, colours, the three speeds, other
@@ -31,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 import time
@@ -77,6 +81,7 @@ COLUMNS = [  # (header, scorer key or None, scale, format)
     ("ms/frame", "ms_per_frame_median", 1.0, "{:.1f}"),
     ("fill ms/frame", "fill_ms_per_frame_median", 1.0, "{:.1f}"),
     ("wall ms/frame", "wall_ms_per_frame", 1.0, "{:.0f}"),
+    ("cpu ms/frame", "cpu_ms_per_frame", 1.0, "{:.0f}"),
 ]
 
 
@@ -128,19 +133,35 @@ def generate(py: Path, testbed: Path, jobs: list[dict[str, Any]], out: Path) -> 
     return errors
 
 
-def track(seq: Path, job: dict[str, Any], out: Path) -> dict[str, Any]:
-    """Run ``trackdeform track`` on one sequence; its metrics plus the command's wall time per frame."""
+def _children_cpu_s() -> float:
+    """User + system CPU time of the finished child processes so far, s."""
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
+def track(seq: Path, job: dict[str, Any], out: Path, cores: int | None = None) -> dict[str, Any]:
+    """Run ``trackdeform track`` on one sequence (on ``cores`` cores of ours, or all); its metrics plus the
+    command's wall and CPU time per frame."""
     out.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(":")}
     cmd = [sys.executable, "-m", "orchestrator.cli", "track", str(seq), "--out", str(out),
            "--category", CATEGORY[job["obj"]], "--json"]
-    t0 = time.monotonic()
-    r = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=REPO)
-    wall = time.monotonic() - t0
+    mask = sorted(os.sched_getaffinity(0))[:cores] if cores else None
+
+    def pin() -> None:  # in the child, before it runs the command
+        if mask:
+            os.sched_setaffinity(0, mask)
+
+    cpu0, t0 = _children_cpu_s(), time.monotonic()
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=REPO,
+                       preexec_fn=pin if mask else None)
+    wall, cpu = time.monotonic() - t0, _children_cpu_s() - cpu0
     if r.returncode != 0:
         return {"error": (r.stderr.strip().splitlines() or ["track failed"])[-1]}
     m = json.loads(r.stdout.strip().splitlines()[-1])
-    m["wall_ms_per_frame"] = 1e3 * wall / max(1, int(m.get("frames", 1)))
+    frames = max(1, int(m.get("frames", 1)))
+    m["wall_ms_per_frame"] = 1e3 * wall / frames
+    m["cpu_ms_per_frame"] = 1e3 * cpu / frames
     return m
 
 
@@ -179,6 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", action="append", help="only these sequences (comma-separated names, repeatable)")
     ap.add_argument("--list", action="store_true", help="list the sequences and exit")
     ap.add_argument("--json", action="store_true", help="also print every row's figures as one JSON line")
+    ap.add_argument("--cores", type=int, help="run each track command on this many of our cores (default: all)")
     a = ap.parse_args(argv)
     jobs = SETS[a.set] if not a.only else SETS["all"]
     if a.only:
@@ -210,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         out = cache / "tracks" / name
         print(f"tracking {name} ...", file=sys.stderr, flush=True)
-        m = track(seqs / name, j, out)
+        m = track(seqs / name, j, out, a.cores)
         r = m if "error" in m else {**score(py, testbed, out / "3d_keypoints.npz", seqs / name), **m}
         rows.append((name, r))
     print(table(rows))

@@ -12,7 +12,7 @@ import zipfile
 import zlib
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -102,15 +102,84 @@ def _arm_geometry(seq: Any, i: int, arms: Any) -> tuple[Any, Any, Any, Any]:
     return None, None, None, None
 
 
+class _Background:
+    """Run ``job`` in a daemon thread; ``raise_if_failed`` re-raises its exception, ``wait`` returns it."""
+
+    def __init__(self, job: Callable[[], None]) -> None:
+        self.error: Exception | None = None
+        self._thread = threading.Thread(target=self._run, args=(job,), name="verify", daemon=True)
+        self._thread.start()
+
+    def _run(self, job: Callable[[], None]) -> None:
+        from tdrecord.sequence import lower_thread_priority
+
+        # off the critical path (the depth reader is on it: it keeps the normal priority), so on a busy
+        # machine the tracking thread comes first
+        lower_thread_priority()
+        try:
+            job()
+        except Exception as e:  # noqa: BLE001 - reported by the thread that waits
+            self.error = e
+
+    def raise_if_failed(self) -> None:
+        """Raise the job's exception if it has failed already."""
+        if self.error is not None:
+            raise self.error
+
+    def wait(self) -> Exception | None:
+        """Wait for the job; its exception or None."""
+        self._thread.join()
+        return self.error
+
+
+class _Pending(NamedTuple):
+    """A frame the forward pass left without keypoints, as compact as exact: the decimated depth in its
+    recorded units (uint16, converted as ``depth_m`` converts the full image, so the float32 values are the
+    ones the forward pass used), its arm mask bit-packed, the TCPs (G, 3) m and closed flags (G,) bool."""
+
+    depth: np.ndarray
+    scale: float
+    arm_bits: np.ndarray | None
+    shape: tuple[int, int]
+    tcp: np.ndarray | None
+    closed: np.ndarray | None
+
+    @staticmethod
+    def keep(prepared: Any, depth: np.ndarray, scale: float, stride: int, tcp: np.ndarray | None,
+             closed: np.ndarray | None) -> _Pending:
+        arm = None if prepared.arm is None else np.packbits(prepared.arm, axis=None)
+        dec = np.ascontiguousarray(depth[::stride, ::stride])
+        p = _Pending(dec, scale, arm, prepared.depth.shape, tcp, closed)
+        if dec.dtype.kind not in "ui" or dec.shape != p.shape or not np.array_equal(p.prepared().depth,
+                                                                                  prepared.depth):
+            p = p._replace(depth=prepared.depth.copy(), scale=1.0)  # not so exact: keep the float32 image
+        return p
+
+    def prepared(self) -> Any:
+        from tracking.pipeline import PreparedFrame
+
+        if self.depth.dtype == np.float32:
+            depth = self.depth
+        else:
+            depth = self.depth.astype(np.float32) * np.float32(self.scale)
+        arm = None
+        if self.arm_bits is not None:
+            n = self.shape[0] * self.shape[1]
+            arm = np.unpackbits(self.arm_bits, count=n).astype(bool).reshape(self.shape)
+        return PreparedFrame(depth, arm)
+
+
 def track_sequence(
     seq: Any, params: Any, kind: str | None, progress: bool = True, on_frame: Callable[[int], None] | None = None
 ) -> dict[str, Any]:
     """Run the pipeline over every frame, then fill the frames left without keypoints (before initialisation,
     after a loss) by tracking from their tracked neighbour (``tracking.offline.fill_missing``); returns raw
     keypoints (T, N, 3) m (NaN only where no frame was ever tracked), grasp indices (T entries (G,) int64
-    or None), topology, metrics. The frames without keypoints are kept in memory for the second pass (their
-    uint16 depth, ~2 MB each at 1280x720). on_frame(i) is called after the forward pass's frame i."""
+    or None), topology, metrics. The frames without keypoints are kept in memory for the second pass as the
+    forward pass prepared them (decimated uint16 depth and bit-packed arm mask, ~120 kB each at 1280x720
+    whatever the clip's length), with their TCPs. on_frame(i) is called after the forward pass's frame i."""
     from orchestrator.worker import ArmModel
+    from tdrecord.sequence import iter_depth
     from tracking.metrics import sequence_summary, surface_error_mm
     from tracking.offline import FrameInput, fill_missing
     from tracking.pipeline import LivePipeline
@@ -120,15 +189,20 @@ def track_sequence(
     T = len(seq)
     raw: list[np.ndarray | None] = []
     grasp: list[np.ndarray | None] = []
-    pending: dict[int, tuple[np.ndarray, float]] = {}  # frame -> (depth uint16, scale) of frames without keypoints
+    pending: dict[int, _Pending] = {}  # the frames without keypoints, for the second pass
     statuses: list[str] = []
     abs_mm, cd_mm, gt_mm, ms = [], [], [], []
     topology = None
     t_start = time.monotonic()
-    for i, frame in enumerate(seq.frames):
+    for i, frame in enumerate(iter_depth(seq.frames)):  # depth only: tracking reads no colour
         V, F, tcp, closed = _arm_geometry(seq, i, arms)
+        full = None if pipe.state == "tracking" else frame.depth_m()  # only initialising needs the whole image
         t0 = time.perf_counter()
-        out = pipe.process(frame.depth_m(), V, F, tcp, closed)
+        if full is None:  # decimate the recorded image, then scale it (the float32 values decimate() gives)
+            prepared = pipe.prepare(frame.depth, V, F, depth_scale=frame.depth_scale)
+            out = pipe.process(None, tcp=tcp, gripper_closed=closed, prepared=prepared)
+        else:
+            out = pipe.process(full, V, F, tcp, closed)
         ms.append((time.perf_counter() - t0) * 1e3)
         statuses.append(out.status)
         if len(out.keypoints) and topology is None:
@@ -137,7 +211,7 @@ def track_sequence(
         raw.append(out.keypoints if same else None)
         grasp.append(out.grasp_idx if same else None)
         if not same:
-            pending[i] = (frame.depth, frame.depth_scale)
+            pending[i] = _Pending.keep(out.prepared, frame.depth, frame.depth_scale, pipe.stride, tcp, closed)
         if same and out.status != "lost":
             abs_mm.append(out.abs_mm)
             cd_mm.append(out.cd_mm)
@@ -157,9 +231,8 @@ def track_sequence(
         )
 
     def frame_input(i: int) -> FrameInput:
-        depth, scale = pending[i]
-        V, F, tcp, closed = _arm_geometry(seq, i, arms)
-        return FrameInput(depth.astype(np.float32) * np.float32(scale), V, F, tcp, closed)
+        p = pending.pop(i)
+        return FrameInput(None, tcp=p.tcp, closed=p.closed, prepared=p.prepared())
 
     assert pipe.background is not None  # set at initialisation
     filled = fill_missing(raw, grasp, topology, pipe.background,
@@ -188,7 +261,7 @@ def cmd_track(args: argparse.Namespace) -> int:
     from tracking.tracker import smooth_symmetric
 
     try:
-        verify_sequence_files(args.input)  # a corrupt npz is refused before any frame is tracked
+        verify_sequence_files(args.input, structure_only=True)  # a truncated npz is refused before reading it
         seq = read_sequence(args.input)
     except (DatasetError, FileNotFoundError) as e:
         print(f"error: {e}", file=sys.stderr)
@@ -199,13 +272,28 @@ def cmd_track(args: argparse.Namespace) -> int:
     category = args.category or seq.metadata.get("category")
     config = load_config(args.config)
     params = tracking_params(config.tracking, category, args.keypoints or seq.metadata.get("n_keypoints"))
+    # The CRCs of what tracking does not stream (colour, poses, calibration) are checked beside it; the depth
+    # stream checks its own. A corrupt file stops the run at the next frame and nothing is written.
+    check = _Background(lambda: verify_sequence_files(args.input, except_streamed=True))
     try:
-        result = track_sequence(seq, params, DIMENSION.get(category or ""), progress=not args.json)
-    except RuntimeError as e:
-        print(f"error: {args.input}: {e}", file=sys.stderr)
-        return 1
-    except (DatasetError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:  # damage found mid-file
-        print(f"error: {args.input}: unreadable part ({type(e).__name__}: {e})", file=sys.stderr)
+        result = track_sequence(seq, params, DIMENSION.get(category or ""), progress=not args.json,
+                                on_frame=lambda _i: check.raise_if_failed())
+    except Exception as e:
+        if (bad := check.wait()) is not None:
+            print(f"error: {bad}", file=sys.stderr)
+            return 2
+        if isinstance(e, RuntimeError):
+            print(f"error: {args.input}: {e}", file=sys.stderr)
+            return 1
+        if isinstance(e, DatasetError):
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        if isinstance(e, (OSError, EOFError, zipfile.BadZipFile, zlib.error)):  # damage found mid-file
+            print(f"error: {args.input}: unreadable part ({type(e).__name__}: {e})", file=sys.stderr)
+            return 2
+        raise
+    if (bad := check.wait()) is not None:
+        print(f"error: {bad}", file=sys.stderr)
         return 2
     raw, topo = result["raw"], result["topology"]
     final = raw.copy()

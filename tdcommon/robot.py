@@ -34,11 +34,33 @@ class LinkMesh:
 
 @functools.lru_cache(maxsize=1)
 def panda_models() -> tuple:
-    """(model, collision_model) of the Panda with hand, loaded once."""
-    from example_robot_data import load
+    """(model, collision_model) of the Panda with hand, loaded once.
 
-    robot = load("panda")
-    return robot.model, robot.collision_model
+    Built as ``example_robot_data.load("panda")`` builds them (URDF, SRDF reference posture and collision
+    pairs) but without its visual model, whose meshes take ~0.6 s to load and are used nowhere here; a
+    loader without the attributes this relies on gets the full ``load``.
+    """
+    import os
+
+    import pinocchio as pin
+    from example_robot_data import getModelPath, load
+
+    try:
+        from example_robot_data.robots_loader import PandaLoader
+        from example_robot_data.utils import readParamsFromSrdf
+
+        urdf_rel = os.path.join(PandaLoader.path, PandaLoader.urdf_subpath, PandaLoader.urdf_filename)
+        root = getModelPath(urdf_rel)
+        srdf = os.path.join(root, PandaLoader.path, PandaLoader.srdf_subpath, PandaLoader.srdf_filename)
+    except (ImportError, AttributeError, OSError):
+        robot = load("panda")
+        return robot.model, robot.collision_model
+    model, cmodel = pin.buildModelsFromUrdf(os.path.join(root, urdf_rel), [os.path.join(root, "../..")],
+                                            geometry_types=pin.GeometryType.COLLISION)
+    readParamsFromSrdf(model, srdf, False, PandaLoader.has_rotor_parameters, PandaLoader.ref_posture)
+    cmodel.addAllCollisionPairs()
+    pin.removeCollisionPairs(model, cmodel, srdf, False)
+    return model, cmodel
 
 
 @functools.lru_cache(maxsize=1)

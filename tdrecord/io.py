@@ -81,14 +81,17 @@ def read_calibration(path: str | Path) -> Calibration:
 
 
 
-def verify_sequence_files(path: str | Path) -> None:
+def verify_sequence_files(path: str | Path, *, except_streamed: bool = False, structure_only: bool = False) -> None:
     """Check a paper-layout dataset's .npz files completely (zip CRCs) before a long job reads them.
 
     Raises DatasetError naming the first corrupt file; episode files need no check here (MCAP chunks
-    carry their own CRCs, checked as they are read).
+    carry their own CRCs, checked as they are read). except_streamed: leave out ``rgbd.npz``'s depth array,
+    for a caller that reads every frame's depth (``Sequence.frames.iter_depth``), whose stream checks that
+    CRC itself at its end. structure_only: only that every file opens as a zip (cheap; catches truncation).
     """
     path = Path(path)
     folder = path.parent if path.name == RGBD_FILE else path
     if folder.is_dir() and (folder / RGBD_FILE).is_file():
         for f in paper_layout_files(folder):
-            verify_npz(f)
+            skip = ("depth.npy",) if except_streamed and f.name == RGBD_FILE else ()
+            verify_npz(f, skip, structure_only)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import zipfile
 import zlib
-from collections.abc import Iterable, Iterator
+from collections.abc import Collection, Iterable, Iterator
 from pathlib import Path
 from typing import IO, Any, Literal, NamedTuple
 
@@ -17,7 +17,15 @@ import numpy as np
 
 from tdcommon.transforms import invert_transform, matrix_to_pose7, pose7_to_matrix
 from tdcommon.types import CameraIntrinsics, RGBDFrame
-from tdrecord.sequence import DEPTH_SCALE_MM, DatasetError, FrameSource, Sequence, check_rigid
+from tdrecord.sequence import (
+    DEPTH_SCALE_MM,
+    DatasetError,
+    DepthImage,
+    FrameSource,
+    Sequence,
+    check_rigid,
+    read_ahead,
+)
 
 RGBD_FILE = "rgbd.npz"
 POSE_FILES = {"left": "left_arm_poses.npz", "right": "right_arm_poses.npz"}
@@ -45,20 +53,32 @@ def _read_npy_header(fp: IO[bytes], where: str) -> tuple[tuple[int, ...], bool, 
         raise DatasetError(f"{where}: not a .npy array ({e})") from e
 
 
-def verify_npz(path: Path) -> None:
-    """Check an .npz completely before use: a zip archive whose every member passes its CRC check.
+def verify_npz(path: Path, skip: Collection[str] = (), structure_only: bool = False) -> None:
+    """Check an .npz before use: a zip archive whose every member (but those named in ``skip``, e.g.
+    ``"depth.npy"``) passes its CRC check; ``structure_only``: only that it opens as a zip (its central
+    directory, at the file's end, is intact: catches truncation without decompressing anything).
 
-    Raises DatasetError naming the file (and the first bad member); reads the whole file once.
+    Raises DatasetError naming the file (and the first bad member); the full check decompresses every member
+    checked once, one block in memory at a time.
     """
     try:
         with zipfile.ZipFile(path) as zf:
-            bad = zf.testzip()
+            if structure_only:
+                return
+            for info in zf.infolist():
+                if info.filename in skip:
+                    continue
+                try:
+                    with zf.open(info) as fp:
+                        while fp.read(1 << 22):
+                            pass
+                except (zipfile.BadZipFile, zlib.error) as e:
+                    raise DatasetError(f"{path}: corrupt .npz: member {info.filename!r} fails its CRC check "
+                                       f"({type(e).__name__}: {e})") from None
     except zipfile.BadZipFile as e:
         raise DatasetError(f"{path}: not a valid .npz (zip) file ({e})") from None
     except (OSError, EOFError, zlib.error) as e:
         raise DatasetError(f"{path}: corrupt .npz ({type(e).__name__}: {e})") from None
-    if bad is not None:
-        raise DatasetError(f"{path}: corrupt .npz: member {bad!r} fails its CRC check")
 
 
 def paper_layout_files(folder: Path) -> list[Path]:
@@ -79,21 +99,31 @@ def npz_member_header(path: Path, key: str) -> tuple[tuple[int, ...], np.dtype]:
 
 
 def _iter_npz_rows(path: Path, key: str, start: int = 0) -> Iterator[np.ndarray]:
-    """The rows ``arr[start], arr[start + 1], ...`` of array ``key`` in an .npz, streamed (one row in memory)."""
-    with zipfile.ZipFile(path) as zf, zf.open(f"{key}.npy") as fp:
-        shape, fortran, dtype = _read_npy_header(fp, f"{path}:{key}")
-        if fortran:  # rare: no row streaming possible
-            with np.load(path) as z:
-                arr = z[key]
-            yield from (np.array(r) for r in arr[start:])
-            return
-        n = math.prod(shape[1:]) * dtype.itemsize
-        for i in range(shape[0]):
-            buf = fp.read(n)
-            if len(buf) != n:
-                raise DatasetError(f"{path}: array '{key}' is truncated at row {i} of {shape[0]}")
-            if i >= start:
-                yield np.frombuffer(buf, dtype=dtype).reshape(shape[1:])
+    """The rows ``arr[start], arr[start + 1], ...`` of array ``key`` in an .npz, streamed (one row in memory).
+
+    A stream read to its end has checked the member's CRC: a mismatch, or deflate data that does not decode,
+    raises DatasetError naming the file and member.
+    """
+    try:
+        with zipfile.ZipFile(path) as zf, zf.open(f"{key}.npy") as fp:
+            shape, fortran, dtype = _read_npy_header(fp, f"{path}:{key}")
+            if fortran:  # rare: no row streaming possible
+                with np.load(path) as z:
+                    arr = z[key]
+                yield from (np.array(r) for r in arr[start:])
+                return
+            n = math.prod(shape[1:]) * dtype.itemsize
+            for i in range(shape[0]):
+                buf = fp.read(n)
+                if len(buf) != n:
+                    raise DatasetError(f"{path}: array '{key}' is truncated at row {i} of {shape[0]}")
+                if i >= start:
+                    yield np.frombuffer(buf, dtype=dtype).reshape(shape[1:])
+            fp.read()  # to the member's end, where zipfile compares its CRC
+    except zipfile.BadZipFile as e:
+        raise DatasetError(f"{path}: corrupt .npz: member '{key}.npy' ({e})") from None
+    except zlib.error as e:
+        raise DatasetError(f"{path}: corrupt .npz: member '{key}.npy' does not decompress ({e})") from None
 
 
 def _require_file(folder: Path, name: str) -> Path:
@@ -215,8 +245,15 @@ def read_paper_layout(
                 depth_scale=DEPTH_SCALE_MM, intrinsics=intr, device_stamp=t, host_stamp=t, frame_number=k,
             )
 
+    def depth_rows(start: int) -> Iterator[DepthImage]:
+        for k, depth in enumerate(_iter_npz_rows(rgbd, "depth", skip + start), start=start):
+            yield DepthImage(depth=depth.astype(np.uint16, copy=False), depth_scale=DEPTH_SCALE_MM, frame_number=k)
+
+    def depth_frames(start: int) -> Iterator[DepthImage]:  # decompressed by a reader thread, a few frames ahead
+        return read_ahead(lambda: depth_rows(start))
+
     return Sequence(
-        frames=FrameSource(frames, T),
+        frames=FrameSource(frames, T, depth_frames),
         T_world_cam=T_world_cam,
         K=K,
         width=W,

@@ -6,10 +6,13 @@ A :class:`Sequence` holds per-frame arrays in the world frame (SI units) and a l
 
 from __future__ import annotations
 
+import os
+import queue
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -22,12 +25,33 @@ class DatasetError(ValueError):
     """A dataset file is missing a channel/key, has the wrong shape, or is unfinished; the message names the file."""
 
 
-class FrameSource:
-    """A re-iterable, lazily decoded run of frames: every ``iter()`` reads them from disk again."""
+@dataclass(frozen=True)
+class DepthImage:
+    """One frame's depth without its colour (what tracking reads): depth (H, W) uint16, ``depth * depth_scale``
+    metres, 0 = no data; frame_number: the frame's index in its sequence; ground_truth as in RGBDFrame."""
 
-    def __init__(self, factory: Callable[[int], Iterator[RGBDFrame]], length: int) -> None:
+    depth: np.ndarray
+    depth_scale: float
+    frame_number: int
+    ground_truth: GroundTruth | None = None
+
+    def depth_m(self) -> np.ndarray:
+        """(H, W) float32 depth in metres, 0 where missing (as ``RGBDFrame.depth_m``)."""
+        return self.depth.astype(np.float32) * np.float32(self.depth_scale)
+
+
+class FrameSource:
+    """A re-iterable, lazily decoded run of frames: every ``iter()`` reads them from disk again.
+
+    depth_factory(start), when given, yields the frames' depth only (``DepthImage``), skipping the colour
+    decoding a depth-only reader (tracking) does not need; without it ``iter_depth`` reads whole frames.
+    """
+
+    def __init__(self, factory: Callable[[int], Iterator[RGBDFrame]], length: int,
+                 depth_factory: Callable[[int], Iterator[DepthImage]] | None = None) -> None:
         self._factory = factory
         self._length = int(length)
+        self._depth_factory = depth_factory
 
     def __iter__(self) -> Iterator[RGBDFrame]:
         return self._factory(0)
@@ -39,6 +63,95 @@ class FrameSource:
         """Frames ``start, start + 1, ...`` (earlier ones are skipped without being decoded where possible)."""
         return self._factory(max(0, int(start)))
 
+    def iter_depth(self, start: int = 0) -> Iterator[DepthImage | RGBDFrame]:
+        """The depth of frames ``start, start + 1, ...``: ``DepthImage`` from the depth-only reader, else whole
+        frames (both have ``depth``, ``depth_scale``, ``ground_truth`` and ``depth_m()``)."""
+        if self._depth_factory is not None:
+            return self._depth_factory(max(0, int(start)))
+        return self.iter_from(start)
+
+
+def iter_depth(frames: Iterable[RGBDFrame]) -> Iterator[DepthImage | RGBDFrame]:
+    """The depth of every frame of ``frames`` (a FrameSource: its depth-only reader where it has one; a list: the
+    frames themselves)."""
+    return frames.iter_depth() if isinstance(frames, FrameSource) else iter(frames)
+
+
+_Item = TypeVar("_Item")
+
+
+def lower_thread_priority(steps: int = 5) -> None:
+    """Make the calling thread yield to the others of its process when the cores are busy (Linux: a thread's
+    nice value is its own; raising it needs no privilege); elsewhere a no-op."""
+    if not hasattr(os, "setpriority"):
+        return
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + steps))
+    except OSError:
+        pass
+
+
+def usable_cores() -> int:
+    """The number of CPU cores this process may run on (its affinity mask where the OS has one)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+def read_ahead(make: Callable[[], Iterator[_Item]], depth: int = 4) -> Iterator[_Item]:
+    """The items of ``make()``, produced by a reader thread up to ``depth`` items ahead of the consumer.
+
+    Decompression (zlib) and file reads release the GIL, so a clip is decoded while the consumer computes;
+    at most ``depth + 1`` items are held. An exception in the reader is raised to the consumer at the point
+    of the stream where it happened; closing the returned generator stops the reader. A process allowed
+    only one core gets the items made inline instead: a thread would only interleave with the consumer
+    there (and its decoding would land inside the consumer's timed steps).
+    """
+    if usable_cores() <= 1:
+        return make()
+    q: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=max(1, int(depth)))
+    stop = threading.Event()
+
+    def put(entry: tuple[str, Any]) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(entry, timeout=0.05)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def run() -> None:
+        it = make()
+        try:
+            for item in it:
+                if not put(("item", item)):
+                    return
+            put(("end", None))
+        except BaseException as e:  # noqa: BLE001 - handed to the consumer, which re-raises it
+            put(("error", e))
+        finally:
+            close = getattr(it, "close", None)
+            if close is not None:
+                close()
+
+    def consume() -> Iterator[_Item]:
+        t = threading.Thread(target=run, name="read-ahead", daemon=True)
+        t.start()
+        try:
+            while True:
+                kind, value = q.get()
+                if kind == "end":
+                    return
+                if kind == "error":
+                    raise value
+                yield value
+        finally:
+            stop.set()
+            t.join()
+
+    return consume()
 
 
 @dataclass

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
+import os
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -24,9 +28,11 @@ from tdrecord import (
     read_paper_layout,
     read_reference_npz,
     read_sequence,
+    verify_sequence_files,
     write_paper_layout,
     write_reference_npz,
 )
+from tdrecord.sequence import iter_depth, read_ahead
 from tests.conftest import make_frame
 
 RAW_COLOR = ColorOutputConfig(codec="raw")
@@ -242,6 +248,62 @@ def test_paper_layout_round_trip(tmp_path: Path, compress: bool) -> None:
     assert list(seq.frames.iter_from(4))[0].frame_number == 4
 
 
+@pytest.mark.parametrize("compress", [False, True])
+def test_paper_layout_depth_only_stream_matches_frames(tmp_path: Path, compress: bool) -> None:
+    folder, frames, _ = _paper(tmp_path, compress=compress)
+    seq = read_sequence(folder)
+    got = list(seq.frames.iter_depth())  # depth only, decoded by a reader thread
+    assert [d.frame_number for d in got] == list(range(5)) and not hasattr(got[0], "color")
+    for d, ref in zip(got, frames, strict=True):
+        assert d.depth.dtype == np.uint16 and d.depth_scale == ref.depth_scale
+        np.testing.assert_array_equal(d.depth_m(), ref.depth_m())
+    assert [d.frame_number for d in seq.frames.iter_depth(3)] == [3, 4]
+    assert [d.frame_number for d in iter_depth(frames)] == list(range(5))  # a list: the frames themselves
+
+
+def test_paper_layout_depth_stream_checks_its_crc(tmp_path: Path) -> None:
+    folder, frames, _ = _paper(tmp_path)  # stored: a flipped byte decodes, only the CRC notices
+    rgbd = folder / "rgbd.npz"
+    data = bytearray(rgbd.read_bytes())
+    at = bytes(data).index(frames[2].depth.astype("<u2").tobytes())
+    data[at + 7] ^= 0xFF
+    rgbd.write_bytes(bytes(data))
+    seq = read_sequence(folder)
+    stream = seq.frames.iter_depth()
+    assert [d.frame_number for d in itertools.islice(stream, 4)] == [0, 1, 2, 3]  # frames come as they decode
+    with pytest.raises(DatasetError, match=r"rgbd\.npz: corrupt \.npz: member 'depth\.npy'.*CRC"):
+        next(stream)  # ... and the end of the member checks them
+    verify_sequence_files(folder, except_streamed=True)  # what the stream checks is left to it
+    with pytest.raises(DatasetError, match="'depth.npy' fails its CRC check"):
+        verify_sequence_files(folder)
+
+
+def test_read_ahead_forwards_errors_and_stops_its_reader() -> None:
+    made: list[int] = []
+
+    def items() -> Iterator[int]:
+        for i in range(1000):
+            made.append(i)
+            if i == 3 and fail:
+                raise ValueError("bad row 3")
+            yield i
+
+    before = threading.active_count()
+    fail = True
+    stream = read_ahead(items, depth=2)
+    assert [next(stream) for _ in range(3)] == [0, 1, 2]
+    with pytest.raises(ValueError, match="bad row 3"):
+        next(stream)
+    fail = False
+    made.clear()
+    stream = read_ahead(items, depth=2)
+    assert next(stream) == 0
+    stream.close()  # the reader stops: at most depth + 2 items were made
+    n = len(made)
+    assert n <= 4 and threading.active_count() == before
+    assert [t.name for t in threading.enumerate()].count("read-ahead") == 0
+
+
 def test_paper_layout_convention_matches_published_code(tmp_path: Path) -> None:
     """(T_left_base2cam @ T_base_tcp)[:3, 3] is the TCP in the camera: equal to inv(T_world_cam) @ tcp."""
     folder, _, _ = _paper(tmp_path)
@@ -347,3 +409,37 @@ def test_episode_metadata_is_json(tmp_path: Path) -> None:
     """The Sequence metadata stays JSON-serialisable (for summaries and exports)."""
     seq = read_episodes(_episode(tmp_path / "e.mcap", range(2)).path)
     json.dumps(seq.metadata)
+
+
+def test_read_ahead_on_one_core_makes_items_inline(monkeypatch: pytest.MonkeyPatch) -> None:
+    import tdrecord.sequence as seqmod
+
+    monkeypatch.setattr(seqmod, "usable_cores", lambda: 1)
+    names: list[str] = []
+
+    def items() -> Iterator[int]:
+        for i in range(3):
+            names.append(threading.current_thread().name)
+            yield i
+
+    assert list(read_ahead(items)) == [0, 1, 2] and set(names) == {threading.current_thread().name}
+
+
+@pytest.mark.skipif(not hasattr(os, "setpriority"), reason="per-thread nice values are a Linux feature")
+def test_background_threads_lower_only_their_own_priority() -> None:
+    from tdrecord.sequence import lower_thread_priority
+
+    def nice() -> int:
+        return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    main_before, seen = nice(), []
+
+    def job() -> None:
+        before = nice()
+        lower_thread_priority(3)
+        seen.append(nice() - before)
+
+    t = threading.Thread(target=job)
+    t.start()
+    t.join()
+    assert seen in ([3], [19 - main_before]) and nice() == main_before

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from tracking import synthetic as S
 from tracking.metrics import surface_error_mm
@@ -46,3 +47,57 @@ def test_fill_missing_tracks_backwards_and_forwards_from_one_frame() -> None:
     assert max(errs) < 3.0  # mm: every frame tracked, on the rope
     # the filled keypoints follow the rope: frame 0 and frame 11 differ by the rope's motion
     assert np.linalg.norm(kps[0] - kps[-1], axis=1).max() > 0.03  # type: ignore[operator]
+
+
+def test_fill_missing_from_prepared_frames_equals_fill_from_depth() -> None:
+    """Frames handed over as the forward pass prepared them (decimated depth, arm mask) fill the same keypoints."""
+    K, T = S.default_camera(W, H)
+    rng = np.random.default_rng(1)
+    bg = background_from_depths(np.stack([S.rope_scene(0, K, T, (H, W), rng, with_object=False).depth] * 2))
+    frames = [S.rope_scene(0.15 * k, K, T, (H, W), rng) for k in range(6)]
+    f = frames[-1]
+    am = render_arm_mask(f.arm_vertices, f.arm_triangles, K, T, (H, W), P.arm_margin_px, f.depth, P.arm_margin_m)
+    tr = Tracker(P, K, T)
+    tr.initialise(segment_against_background(f.depth, bg, K, T, P, am).points)
+    assert tr.topology is not None and tr.keypoints is not None
+
+    def make() -> LivePipeline:
+        return LivePipeline(P, K, T, "1d")
+
+    prep = make()
+    prepared = [prep.prepare(fr.depth, fr.arm_vertices, fr.arm_triangles) for fr in frames]
+    assert all(p.arm is not None and p.arm.any() for p in prepared)
+    out = []
+    for inputs in (lambda i: FrameInput(frames[i].depth, frames[i].arm_vertices, frames[i].arm_triangles),
+                   lambda i: FrameInput(None, prepared=prepared[i])):
+        kps: list[np.ndarray | None] = [None] * (len(frames) - 1) + [tr.keypoints.copy()]
+        grasp: list[np.ndarray | None] = [None] * (len(frames) - 1) + [np.zeros(0, np.int64)]
+        res = fill_missing(kps, grasp, tr.topology, make().decimate(bg), make, inputs)
+        assert res.backward == len(frames) - 1
+        out.append(np.stack(kps))  # type: ignore[arg-type]
+    np.testing.assert_array_equal(out[0], out[1])
+
+
+def test_prepared_frame_alone_cannot_initialise() -> None:
+    K, T = S.default_camera(W, H)
+    pipe = LivePipeline(P, K, T, "1d")
+    fr = S.rope_scene(0, K, T, (H, W), np.random.default_rng(2))
+    first = pipe.process(fr.depth)
+    assert first.status == "reference" and first.prepared is not None
+    with pytest.raises(ValueError, match="full-resolution depth"):
+        pipe.process(None, prepared=first.prepared)
+    with pytest.raises(ValueError, match="no depth and no prepared frame"):
+        pipe.process(None)
+
+
+def test_prepare_from_the_recorded_image_equals_prepare_from_metres() -> None:
+    """Decimating the uint16 image before scaling it gives the float32 values decimating depth_m() gives."""
+    K, T = S.default_camera(1280, 720)
+    pipe = LivePipeline(P, K, T, "1d")
+    assert pipe.stride > 1
+    raw = np.random.default_rng(3).integers(0, 4000, (720, 1280)).astype(np.uint16)
+    for scale in (0.001, 0.000125, 1 / 3000):
+        a = pipe.prepare(raw.astype(np.float32) * np.float32(scale))
+        b = pipe.prepare(raw, depth_scale=scale)
+        assert b.depth.dtype == np.float32 and b.depth.flags.c_contiguous
+        np.testing.assert_array_equal(a.depth, b.depth)

@@ -13,6 +13,7 @@ from tracking.params import TrackingParams
 from tracking.segmentation import (
     background_from_depths,
     behind_near_object,
+    render_arm_depth,
     render_arm_mask,
     segment_against_background,
     segment_by_difference,
@@ -61,6 +62,36 @@ def test_arm_mask_removes_arm_keeps_object_in_front(cam):
     assert not mask[in_front].any()  # the rope crossing in front of the arm survives
     sil = render_arm_mask(arm[0], arm[1], K, T, (H, W), margin_px=0)
     assert abs(int(sil.sum()) - int(arm_only.sum())) < 0.05 * arm_only.sum()
+
+
+@pytest.mark.parametrize("stride", [1, 2, 3])
+def test_arm_depth_casts_only_rays_that_can_hit_and_equals_casting_every_ray(cam, stride):
+    """The culled render (rays inside triangle boxes, triangles the grid reaches) is the brute-force one."""
+    import open3d as o3d
+
+    K, T = cam
+    parts = [box_mesh((x, 0.1, 0.2), (0.05, 0.05, 0.2)) for x in (-0.25, 0.25)]  # two "arms" apart
+    parts.append(tube_mesh(np.array([[-3.0, 0.3, 0.1], [3.0, 0.3, 0.1]]), 0.02))  # reaching far out of view
+    V = np.concatenate([v for v, _ in parts])
+    F = np.concatenate([f + sum(len(v) for v, _ in parts[:k]) for k, (_, f) in enumerate(parts)]).astype(np.int32)
+    got = render_arm_depth(V, F, K, T, (H, W), stride)
+    # brute force: every ray of the meshes' projected bounding box against every triangle
+    R, t = T[:3, :3], T[:3, 3]
+    vc = (V - t) @ R
+    u, v = K[0, 0] * vc[:, 0] / vc[:, 2] + K[0, 2], K[1, 1] * vc[:, 1] / vc[:, 2] + K[1, 2]
+    c0, c1 = int(np.clip(np.floor(u.min()), 0, W)), int(np.clip(np.ceil(u.max()) + 1, 0, W))
+    r0, r1 = int(np.clip(np.floor(v.min()), 0, H)), int(np.clip(np.ceil(v.max()) + 1, 0, H))
+    cc, rr = np.meshgrid(np.arange(c0, c1, stride), np.arange(r0, r1, stride))
+    dc = np.stack([(cc - K[0, 2]) / K[0, 0], (rr - K[1, 2]) / K[1, 1], np.ones_like(cc, dtype=np.float64)], -1)
+    dc = dc.reshape(-1, 3) / np.linalg.norm(dc.reshape(-1, 3), axis=1, keepdims=True)
+    rays = np.concatenate([np.broadcast_to(t, dc.shape), dc @ R.T], axis=1).astype(np.float32)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32)))
+    z = (scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy() * dc[:, 2]).astype(np.float32)
+    want = np.full((H, W), np.inf, np.float32)
+    want[r0:r1, c0:c1] = np.repeat(np.repeat(z.reshape(cc.shape), stride, 0), stride, 1)[: r1 - r0, : c1 - c0]
+    assert np.isfinite(got).sum() > 1000 and np.isfinite(got[:, : W // 2]).any() and np.isfinite(got[:, W // 2:]).any()
+    np.testing.assert_array_equal(got, want)
 
 
 def test_difference_segmentation_isolates_rope_without_colour(cam):

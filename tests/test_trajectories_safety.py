@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tdcommon.robot import HOME_Q, PandaKinematics, arm_inputs, arm_inputs_batch
+from tdcommon.robot import HOME_Q, PandaKinematics, arm_inputs, arm_inputs_batch, panda_models
 from trajectories.program import Program, Waypoint, library_path, load_program
 from trajectories.safety import MOCK_BASES, Workspace, check_program
 from trajectories.timing import MEDIUM, SLOW, fast, time_program
@@ -15,6 +15,16 @@ HOME = np.array(HOME_Q)
 
 def _prog(*pairs: tuple[np.ndarray, np.ndarray]) -> Program:
     return Program(name="t", waypoints=[Waypoint(left=list(a), right=list(b)) for a, b in pairs])
+
+
+def test_panda_models_equal_example_robot_data_load():
+    """Built without the visual meshes, the kinematic and collision models are load("panda")'s."""
+    from example_robot_data import load
+
+    model, cmodel = panda_models()
+    robot = load("panda")
+    assert model == robot.model and cmodel == robot.collision_model
+    assert len(cmodel.geometryObjects) > 0 and len(cmodel.collisionPairs) == len(robot.collision_model.collisionPairs)
 
 
 def test_home_is_safe():

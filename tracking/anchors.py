@@ -13,7 +13,6 @@ import cv2
 import numpy as np
 from scipy.ndimage import convolve1d
 from scipy.optimize import linear_sum_assignment
-from scipy.signal import savgol_coeffs
 from scipy.spatial import cKDTree
 
 from tracking.geometry import object_image, project_points
@@ -354,6 +353,8 @@ def contour_3d(
 @lru_cache(maxsize=64)
 def _savgol_weights(window: int) -> tuple[np.ndarray, np.ndarray]:
     """Savitzky-Golay smoothing weights (window,) for a quadratic, and the Vandermonde matrix (window, 3)."""
+    from scipy.signal import savgol_coeffs  # here: importing scipy.signal costs ~0.4 s, once per process
+
     return savgol_coeffs(window, 2), np.vander(np.arange(window, dtype=np.float64), 3)
 
 

@@ -3,9 +3,11 @@ neighbouring tracked frame, backwards in time before it (the frames before initi
 re-initialisation) or forwards after the last one (a track lost for good), so every frame has keypoints.
 
 The passes run the same ``LivePipeline`` tracking step as the forward pass (same segmentation, anchors and
-solver, so the same cost per frame), resumed from the neighbour's keypoints with a background model that
-has seen the whole clip (the forward pass's last one: what the object uncovered as it moved is known
-there, while the background at initialisation still held the object wherever it had not yet moved).
+solver; the frames' decimated depth and arm masks can be handed over from the forward pass, which made them
+already, so a frame costs no more than it did there), resumed from the neighbour's keypoints with a
+background model that has seen the whole clip (the forward pass's last one: what the object uncovered as it
+moved is known there, while the background at initialisation still held the object wherever it had not yet
+moved).
 """
 
 from __future__ import annotations
@@ -17,19 +19,22 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tracking.init import Topology
-from tracking.pipeline import LivePipeline
+from tracking.pipeline import LivePipeline, PreparedFrame
 
 
 @dataclass(frozen=True)
 class FrameInput:
     """What ``LivePipeline.process`` takes for one frame: depth (H, W) float32 m; both arms as one mesh
-    vertices (V, 3) m world + triangles (F, 3) int (or None); tcp (G, 3) m world and closed (G,) bool."""
+    vertices (V, 3) m world + triangles (F, 3) int (or None); tcp (G, 3) m world and closed (G,) bool.
+    prepared: the frame's decimated depth and arm mask kept from the forward pass (depth and meshes may
+    then be None: a resumed track does not initialise, so it needs neither)."""
 
-    depth: np.ndarray
+    depth: np.ndarray | None
     arm_vertices: np.ndarray | None = None
     arm_triangles: np.ndarray | None = None
     tcp: np.ndarray | None = None
     closed: np.ndarray | None = None
+    prepared: PreparedFrame | None = None
 
 
 @dataclass
@@ -80,7 +85,7 @@ def fill_missing(
         for i in order:
             f = frame(i)
             t0 = time.perf_counter()
-            out = pipe.process(f.depth, f.arm_vertices, f.arm_triangles, f.tcp, f.closed)
+            out = pipe.process(f.depth, f.arm_vertices, f.arm_triangles, f.tcp, f.closed, prepared=f.prepared)
             res.ms.append(1e3 * (time.perf_counter() - t0))
             if len(out.keypoints) == N:
                 X, g = out.keypoints, out.grasp_idx

@@ -48,7 +48,8 @@ class PipelineOutput:
     timings_ms: wall time of this frame's stages, ms: "arm" (arm mask render), "segment"
     (differencing or background segmentation + DBSCAN), "init" (classification, anchors, warm start,
     solve) on an initialisation frame, "anchors" (re-detection) and "solve" (Algorithm 1 + scoring)
-    on a tracked frame, "total" (the whole ``process`` call).
+    on a tracked frame, "total" (the whole ``process`` call). prepared: the frame's decimated depth and
+    arm mask (``PreparedFrame``), for a caller that processes the frame again.
     """
 
     status: str
@@ -62,9 +63,20 @@ class PipelineOutput:
     cloud: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)), repr=False)
     note: str = ""
     timings_ms: dict[str, float] = field(default_factory=dict, repr=False)
+    prepared: PreparedFrame | None = field(default=None, repr=False, compare=False)
 
 
 _EMPTY = np.zeros((0, 3))
+
+
+@dataclass(frozen=True)
+class PreparedFrame:
+    """What ``LivePipeline.process`` computes first from a frame, before any state is used: its decimated depth
+    (h, w) float32 m and arm mask (h, w) bool (None without arm meshes). An offline pass that tracks the frame
+    again hands it back (``process(prepared=...)``) instead of decimating and rendering the arms again."""
+
+    depth: np.ndarray
+    arm: np.ndarray | None
 
 
 def object_samples(X: np.ndarray, topology: Topology, n: int = 6) -> np.ndarray:
@@ -177,31 +189,58 @@ class LivePipeline:
             p.arm_render_stride,
         )
 
+    def prepare(
+        self, depth: np.ndarray, arm_vertices: np.ndarray | None = None, arm_triangles: np.ndarray | None = None,
+        depth_scale: float | None = None,
+    ) -> PreparedFrame:
+        """A frame's decimated depth and arm mask (``PreparedFrame``) from its depth (H, W) float32 m and arm
+        mesh (V, 3) m world + (F, 3) int: stateless, the first step of ``process``. With ``depth_scale`` (m per
+        unit) depth is the recorded integer image, decimated before it is scaled (as ``RGBDFrame.depth_m``
+        scales it: the same float32 values without converting the whole image)."""
+        if depth_scale is None:
+            dec = self.decimate(depth)
+        else:
+            dec = np.ascontiguousarray(depth[:: self.stride, :: self.stride]).astype(np.float32) * np.float32(
+                depth_scale
+            )
+        return PreparedFrame(dec, self.arm_mask(dec, arm_vertices, arm_triangles))
+
     def process(
         self,
-        depth: np.ndarray,
+        depth: np.ndarray | None,
         arm_vertices: np.ndarray | None = None,
         arm_triangles: np.ndarray | None = None,
         tcp: np.ndarray | None = None,
         gripper_closed: np.ndarray | None = None,
+        prepared: PreparedFrame | None = None,
     ) -> PipelineOutput:
         """One frame: depth (H, W) float32 m; both arms as one mesh (V, 3) m world + (F, 3) int;
-        tcp (G, 3) m world and gripper_closed (G,) bool of the grippers (G = 2: left, right)."""
+        tcp (G, 3) m world and gripper_closed (G,) bool of the grippers (G = 2: left, right).
+        prepared: this frame's ``PreparedFrame`` from an earlier ``prepare`` / output (the arm meshes are then
+        not needed); depth may then be None unless the pipeline still has to initialise (it re-lifts the
+        initial cloud from the full-resolution depth)."""
         t0 = time.perf_counter()
-        full, depth = depth, self.decimate(depth)
-        arm = self.arm_mask(depth, arm_vertices, arm_triangles)
+        if prepared is None:
+            if depth is None:
+                raise ValueError("LivePipeline.process: no depth and no prepared frame")
+            prepared = self.prepare(depth, arm_vertices, arm_triangles)
+        elif depth is None and self._d0 is not None and not self.tracker.initialised:
+            raise ValueError("LivePipeline.process: initialising needs the full-resolution depth, not only a "
+                             "prepared frame")
+        full, depth, arm = depth, prepared.depth, prepared.arm
         self._timings = {"arm": 1e3 * (time.perf_counter() - t0)}
         if self._d0 is None:
             self.set_reference(depth)
             out = self._empty("reference")
         elif not self.tracker.initialised:
+            assert full is not None  # checked above
             out = self._try_initialise(depth, arm, tcp, gripper_closed, full)
         else:
             out = self._track(depth, arm, tcp, gripper_closed)
         if self._prev.maxlen:
             self._prev.append(depth)
         self._timings["total"] = 1e3 * (time.perf_counter() - t0)
-        return replace(out, timings_ms=self._timings)
+        return replace(out, timings_ms=self._timings, prepared=prepared)
 
     def segment_initial(self, refs: np.ndarray, depth: np.ndarray, arm: np.ndarray | None) -> Segmentation:
         """Difference segmentation of a decimated depth (h, w) m against references (R, h, w) m.

@@ -53,6 +53,34 @@ def change_threshold(depth: np.ndarray, params: TrackingParams) -> np.ndarray:
     return np.maximum(np.float32(params.diff_abs_m), np.float32(params.diff_sigma_k) * sigma)
 
 
+def _rays_needed(
+    u: np.ndarray, v: np.ndarray, triangles: np.ndarray, r0: int, c0: int, shape: tuple[int, int], stride: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Which rays of a grid can hit a mesh whose vertices all lie in front of the camera.
+
+    u, v: (V,) float pixel coordinates of the vertices; triangles (F, 3) int; the grid's ray (i, j) passes
+    through pixel (c0 + j * stride, r0 + i * stride), shape = (rows, cols). A ray can hit a triangle only
+    where its pixel lies inside the triangle's projection, so inside its bounding box (padded by a pixel
+    against rounding). Returns the (rows, cols) bool rays inside some triangle's box and the (F,) bool
+    triangles whose box meets the grid (the others no ray of the grid can hit).
+    """
+    nr, nc = shape
+    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    ua, ub, uc, va, vb, vc = u[a], u[b], u[c], v[a], v[b], v[c]  # per corner: min/max over axis 1 is slow
+    jlo = np.ceil((np.minimum(np.minimum(ua, ub), uc) - 1.0 - c0) / stride)
+    jhi = np.floor((np.maximum(np.maximum(ua, ub), uc) + 1.0 - c0) / stride)
+    ilo = np.ceil((np.minimum(np.minimum(va, vb), vc) - 1.0 - r0) / stride)
+    ihi = np.floor((np.maximum(np.maximum(va, vb), vc) + 1.0 - r0) / stride)
+    hit = (jhi >= 0) & (jlo <= nc - 1) & (ihi >= 0) & (ilo <= nr - 1)
+    jlo, jhi = np.clip(jlo[hit], 0, nc - 1).astype(np.int64), np.clip(jhi[hit], 0, nc - 1).astype(np.int64) + 1
+    ilo, ihi = np.clip(ilo[hit], 0, nr - 1).astype(np.int64), np.clip(ihi[hit], 0, nr - 1).astype(np.int64) + 1
+    # +1 / -1 at each box's corners, summed up into the number of boxes over each ray
+    corners = np.concatenate([ilo * (nc + 1) + jlo, ihi * (nc + 1) + jhi, ilo * (nc + 1) + jhi, ihi * (nc + 1) + jlo])
+    sign = np.repeat(np.array([1.0, -1.0]), 2 * len(jlo))
+    cover = np.bincount(corners, sign, (nr + 1) * (nc + 1)).reshape(nr + 1, nc + 1)
+    return np.cumsum(np.cumsum(cover, axis=0), axis=1)[:nr, :nc] > 0.5, hit
+
+
 def render_arm_depth(
     vertices: np.ndarray,
     triangles: np.ndarray,
@@ -64,7 +92,9 @@ def render_arm_depth(
     """Raycast world-frame meshes into a camera depth image.
 
     vertices: (V, 3) float, metres, world frame; triangles: (F, 3) int. shape: (H, W).
-    Rays are cast every ``stride`` pixels inside the meshes' projected bounding box and upsampled.
+    Rays are cast every ``stride`` pixels inside the meshes' projected bounding box and upsampled; with the
+    whole mesh in front of the camera only the rays inside some triangle's projected box are cast, against
+    the triangles the box grid can reach (the others miss: the same image, a smaller BVH to build).
     Returns (H, W) float32 camera z-depth in metres, +inf where no mesh is hit.
     """
     H, W = shape
@@ -88,6 +118,12 @@ def render_arm_depth(
     rows = np.arange(r0, r1, stride)
     cols = np.arange(c0, c1, stride)
     cc, rr = np.meshgrid(cols, rows)
+    need = None
+    if front.all():
+        need, reach = _rays_needed(u, v, np.asarray(triangles), r0, c0, cc.shape, stride)
+        if not need.any():
+            return out
+        cc, rr, triangles = cc[need], rr[need], np.asarray(triangles)[reach]
     dc = np.stack(
         [(cc - K[0, 2]) / K[0, 0], (rr - K[1, 2]) / K[1, 1], np.ones_like(cc, dtype=np.float64)], axis=-1
     ).reshape(-1, 3)
@@ -101,7 +137,11 @@ def render_arm_depth(
         o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32)),
     )
     t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-    z = (t_hit * dc[:, 2]).astype(np.float32).reshape(len(rows), len(cols))
+    if need is None:
+        z = (t_hit * dc[:, 2]).astype(np.float32).reshape(len(rows), len(cols))
+    else:
+        z = np.full((len(rows), len(cols)), np.inf, np.float32)
+        z[need] = (t_hit * dc[:, 2]).astype(np.float32)
     block = np.repeat(np.repeat(z, stride, axis=0), stride, axis=1)[: r1 - r0, : c1 - c0]
     out[r0:r1, c0:c1] = block
     return out
