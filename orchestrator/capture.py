@@ -40,7 +40,7 @@ from tdcommon.types import RGBDFrame
 from tdcommon.wire import encode_frame, encode_json
 
 log = logging.getLogger(__name__)
-SIM_FIRST_FRAME_WAIT_S = 2.0  # simulated time, live-initialised run: wall s an episode's first frame waits
+SIM_FIRST_FRAME_WAIT_S = 10.0  # simulated time, live-initialised run: wall s an episode's first frame waits at most
 
 
 class LowDisk(RuntimeError):

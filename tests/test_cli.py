@@ -66,12 +66,14 @@ def test_watch_prints_live_keypoints(tmp_path: Path, port: int) -> None:
     process, which knows only the session's endpoint, prints the worker's keypoints."""
     endpoint = f"tcp/127.0.0.1:{port}"
     out = tmp_path / "demo"
-    demo = subprocess.Popen([*CLI, "demo", "--seconds", "120", "--out", str(out), "--port", str(port)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    cfg = tmp_path / "mock_no_live_init.yaml"  # routing is the point here: the worker initialises on the run itself
+    cfg.write_text((REPO / "configs" / "mock.yaml").read_text().replace(
+        "tracking:\n  enabled: true", "tracking:\n  enabled: true\n  live_init:\n    enabled: false"))
+    demo = subprocess.Popen([*CLI, "demo", "--seconds", "120", "--out", str(out), "--port", str(port),
+                             "--config", str(cfg)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        # 450 sets: the first ~300 are the live initialisation's (reference, the move out, waiting for P1, ...)
-        watch = subprocess.run([*CLI, "watch", "--connect", endpoint, "--count", "450", "--seconds", "150", "--json"],
-                               capture_output=True, text=True, timeout=200)
+        watch = subprocess.run([*CLI, "watch", "--connect", endpoint, "--count", "150", "--seconds", "100", "--json"],
+                               capture_output=True, text=True, timeout=150)
         deadline = time.monotonic() + 120  # the first sets may be the live initialisation's: stop once it records
         while not list(out.glob("episode_*.mcap*")) and time.monotonic() < deadline and demo.poll() is None:
             time.sleep(0.2)
@@ -84,7 +86,7 @@ def test_watch_prints_live_keypoints(tmp_path: Path, port: int) -> None:
             demo.wait()
     msgs = [json.loads(ln) for ln in watch.stdout.splitlines() if ln.startswith("{")]
     worker_log = (out / "worker.log").read_text() if (out / "worker.log").exists() else ""
-    assert len(msgs) == 450, watch.stderr + demo_out + worker_log
+    assert len(msgs) == 150, watch.stderr + demo_out + worker_log
     assert stop.returncode == 0 and "stopping" in stop.stdout, stop.stdout + stop.stderr
     assert demo.returncode == 0, demo_out
     session_ids = {m["session_id"] for m in msgs}

@@ -146,6 +146,10 @@ def _session_config(port: int, program: Path | None = None, **extra: Any) -> Con
     return Config.model_validate(data)
 
 
+# the failure tests check what follows a failed check, not the initialisation: shorter moves there
+QUICK_MOVES = {"tracking.live_init.move_seconds": 1.0, "tracking.live_init.hold_seconds": 0.5}
+
+
 def _short_program(path: Path) -> Path:
     """rope_swing's first move and back: a 2 s run (two 1 s episodes) from the library's start pose."""
     prog = load_program(resolve_program("rope_swing"))
@@ -192,7 +196,7 @@ def test_recorded_runs_are_tracked_from_their_first_frame(tmp_path: Path, port: 
 def test_failing_check_retries_then_skips_the_object_with_the_reason(tmp_path: Path, port: int) -> None:
     program = _short_program(tmp_path / "rope_short.yaml")
     cfg = _session_config(port, program, **{"tracking.live_init.max_edge_error": 1e-6,
-                                            "tracking.live_init.attempts": 2})
+                                            "tracking.live_init.attempts": 2, **QUICK_MOVES})
     tmp_path = tmp_path / "session"
     with Bus(cfg.bus, cfg.station.name) as bus:
         summary = Session(cfg, tmp_path, SimClock(), bus=bus, with_worker=True).run()
@@ -235,7 +239,7 @@ def test_on_failure_record_records_the_runs_with_the_failed_outcome(tmp_path: Pa
     program = _short_program(tmp_path / "rope_short.yaml")
     cfg = _session_config(port, program, **{"tracking.live_init.max_edge_error": 1e-6,
                                             "tracking.live_init.attempts": 1,
-                                            "tracking.live_init.on_failure": "record"})
+                                            "tracking.live_init.on_failure": "record", **QUICK_MOVES})
     out = tmp_path / "session"
     with Bus(cfg.bus, cfg.station.name) as bus:
         summary = Session(cfg, out, SimClock(), bus=bus, with_worker=True).run()
