@@ -439,6 +439,25 @@ def quality_rows(runs: list[RunData]) -> list[dict[str, Any]]:
     return rows
 
 
+def live_init_row(record: dict[str, Any]) -> dict[str, str]:
+    """A journal ``live_init`` record as a row of the report's table: the object, the run it preceded, the
+    outcome, attempts, seconds and the last attempt's check (keypoints, edge error, gripper distance) or reason."""
+    attempts = record.get("attempts") or []
+    m = (attempts[-1].get("metrics") or {}) if attempts else {}
+    grip = m.get("gripper_distance_m") or {}
+    check = ""
+    if m:
+        check = (f"{m.get('n_keypoints', '?')} keypoints, edge error {_fmt(float(m.get('abs_mm') or 0.0))} mm"
+                 f" ({_fmt(float(m.get('edge_error') or 0.0), 3)} of an edge)")
+        if grip:
+            check += ", gripper " + " / ".join(f"{k} {1000 * float(v):.0f} mm" for k, v in grip.items())
+    return {"object": str(record.get("object", "?")),
+            "before": f"{record.get('program')} · {record.get('speed')} · #{int(record.get('repeat', 0)) + 1}",
+            "outcome": str(record.get("outcome", "?")), "attempts": str(len(attempts)),
+            "seconds": _fmt(float(record.get("seconds") or 0.0), 1),
+            "check": check if record.get("outcome") == "ok" else (record.get("reason") or check)}
+
+
 def collection_summary(session: Path, runs: list[RunData], active: list[Path]) -> dict[str, Any]:
     """Runs done / failed / skipped with reasons (journal), frames (summary.json), episodes, disk, incidents."""
     from orchestrator.journal import read_journal
@@ -455,6 +474,7 @@ def collection_summary(session: Path, runs: list[RunData], active: list[Path]) -
                    "episodes": len(r.get("episodes") or []), "wall": _fmt(float(r.get("wall_seconds") or 0), 1),
                    "finished": r.get("finished", "")} for r in outcomes]
     counts = {k: sum(1 for r in outcomes if r.get("outcome") == k) for k in ("done", "failed", "skipped")}
+    live_init = [live_init_row(r) for r in records if r.get("type") == "live_init"]
     incidents: list[str] = []
     open_starts: dict[tuple, dict[str, Any]] = {}
     for r in records:
@@ -496,7 +516,8 @@ def collection_summary(session: Path, runs: list[RunData], active: list[Path]) -
     disk = sum(p.stat().st_size for p in session.iterdir() if p.is_file())
     return {
         "runs_done": counts["done"], "runs_failed": counts["failed"], "runs_skipped": counts["skipped"],
-        "runs_table": runs_table, "journal": journal_path.name if records else "(no journal)",
+        "runs_table": runs_table, "live_init": live_init,
+        "journal": journal_path.name if records else "(no journal)",
         "frames_captured": summary.get("frames_captured", sum(r.frames for r in runs)),
         "frames_dropped": summary.get("frames_dropped", "–"),
         "recorded_seconds": _fmt(float(summary.get("recorded_seconds") or 0.0), 1),

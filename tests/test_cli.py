@@ -15,7 +15,7 @@ from orchestrator.cli import main
 from orchestrator.cli_tracking import format_keypoints_line
 from orchestrator.recorder import EpisodeWriter
 from tdcommon.wire import check_keypoints
-from tests.conftest import REPO, make_frame
+from tests.conftest import NO_LIVE_INIT, REPO, make_frame, mock_yaml
 
 CLI = [sys.executable, "-m", "orchestrator.cli"]
 
@@ -66,9 +66,8 @@ def test_watch_prints_live_keypoints(tmp_path: Path, port: int) -> None:
     process, which knows only the session's endpoint, prints the worker's keypoints."""
     endpoint = f"tcp/127.0.0.1:{port}"
     out = tmp_path / "demo"
-    cfg = tmp_path / "mock_no_live_init.yaml"  # routing is the point here: the worker initialises on the run itself
-    cfg.write_text((REPO / "configs" / "mock.yaml").read_text().replace(
-        "tracking:\n  enabled: true", "tracking:\n  enabled: true\n  live_init:\n    enabled: false"))
+    # routing is the point here: the worker initialises on the run itself
+    cfg = mock_yaml(tmp_path / "mock_no_live_init.yaml", NO_LIVE_INIT)
     demo = subprocess.Popen([*CLI, "demo", "--seconds", "120", "--out", str(out), "--port", str(port),
                              "--config", str(cfg)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:

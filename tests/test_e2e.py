@@ -89,7 +89,7 @@ def test_demo_with_tracking_worker_records_keypoints(tmp_path: Path, port: int) 
     """The demo (real time, as a user runs it) starts the tracking worker; its keypoints land in the episodes."""
     out = tmp_path / "demo"
     proc = subprocess.run(
-        [sys.executable, "-m", "orchestrator.cli", "demo", "--seconds", "10", "--out", str(out),
+        [sys.executable, "-m", "orchestrator.cli", "demo", "--seconds", "5", "--out", str(out),
          "--port", str(port), "--object", "rope"],
         capture_output=True, text=True, timeout=300,
     )

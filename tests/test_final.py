@@ -18,7 +18,7 @@ from orchestrator.final import TMP_SUFFIX, FinalKeypoints, pending_runs, rewrite
 from orchestrator.landing import Manifest
 from orchestrator.recorder import EpisodeWriter
 from tdrecord import DatasetError, iter_episodes, load_episode, read_manifest
-from tests.conftest import REPO, make_frame
+from tests.conftest import NO_LIVE_INIT, REPO, make_frame, mock_yaml
 
 N = 4
 EDGES = [[0, 1], [1, 2], [2, 3]]
@@ -239,16 +239,16 @@ def test_sim_time_demo_every_frame_has_final_keypoints_and_resumes(tmp_path: Pat
     """A demo recorded with final tracking off, then resumed with it on: the first session's run is tracked on
     resume, the new one after it ends; every frame of every episode has final keypoints."""
     out = tmp_path / "demo"
-    off = tmp_path / "mock_nofinal.yaml"
-    off.write_text((REPO / "configs" / "mock.yaml").read_text().replace("tracking:\n  enabled: true",
-                                                                         "tracking:\n  enabled: true\n  final: false"))
-    assert load_config(off).tracking.final is False
+    # the live initialisation is tested on its own (test_liveinit.py); here the worker initialises on the run
+    off = mock_yaml(tmp_path / "mock_nofinal.yaml", {**NO_LIVE_INIT, "tracking.final": False})
+    on = mock_yaml(tmp_path / "mock_final.yaml", NO_LIVE_INIT)
+    assert load_config(off).tracking.final is False and load_config(on).tracking.final is True
     base = [sys.executable, "-m", "orchestrator.cli", "demo", "--sim-time", "--seconds", "5", "--out", str(out),
             "--port", str(port)]
     first = subprocess.run([*base, "--config", str(off)], capture_output=True, text=True, timeout=600, cwd=REPO)
     assert first.returncode == 0, first.stderr[-3000:]
     assert all(load_episode(p, images=False).keypoints_final is None for p in out.glob("episode_*.mcap"))
-    second = subprocess.run(base, capture_output=True, text=True, timeout=900, cwd=REPO)
+    second = subprocess.run([*base, "--config", str(on)], capture_output=True, text=True, timeout=900, cwd=REPO)
     assert second.returncode == 0, second.stderr[-3000:]
     assert "final keypoints  : 2 run(s)" in second.stdout, second.stdout
     files = sorted(out.glob("episode_*.mcap"))

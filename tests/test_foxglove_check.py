@@ -19,7 +19,7 @@ import pytest
 
 from orchestrator.config import ColorOutputConfig, DepthOutputConfig
 from orchestrator.recorder import EpisodeWriter
-from tests.conftest import REPO, make_frame
+from tests.conftest import NO_LIVE_INIT, REPO, make_frame, mock_yaml
 
 TOOL = Path(os.environ.get("TRACKDEFORM_FOXGLOVE_CHECK", REPO.parent / "shared" / "tools" / "foxglove-check"))
 
@@ -79,14 +79,15 @@ def test_every_channel_of_a_written_episode_parses(tmp_path: Path, checker: Path
 @pytest.mark.slow
 def test_sim_time_demo_episodes_pass(tmp_path: Path, checker: Path, port: int) -> None:
     out = tmp_path / "demo"
+    conf = mock_yaml(tmp_path / "mock.yaml", NO_LIVE_INIT)  # live keypoints from the run's own initialisation
     proc = subprocess.run(
-        [sys.executable, "-m", "orchestrator.cli", "demo", "--sim-time", "--seconds", "10", "--out", str(out),
-         "--port", str(port)],
+        [sys.executable, "-m", "orchestrator.cli", "demo", "--sim-time", "--seconds", "5", "--out", str(out),
+         "--port", str(port), "--config", str(conf)],
         capture_output=True, text=True, timeout=600, cwd=REPO,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     files = sorted(out.glob("episode_*.mcap"))
-    assert len(files) >= 2
+    assert files
     report = _check(checker, *files)
     assert len(report["files"]) == len(files)
     for f in report["files"]:  # the final keypoints (tracked after each run) parse, one per frame

@@ -28,12 +28,14 @@ from orchestrator.session import Session
 from tdcommon.wire import check_keypoints, decode_frame, decode_json, encode_frame, encode_json, encode_keypoints
 from tdrecord import read_episode_metadata
 from tdrecord.channels import keypoints_record
-from tests.conftest import make_frame
+from tests.conftest import NO_LIVE_INIT, make_frame
 
 
 def mock_config(port: int, *, tracking: bool = True, small: bool = False, **extra: object) -> Config:
-    """The mock config with only the rope, on ``tcp/127.0.0.1:<port>``."""
-    overrides: dict[str, Any] = {"bus.listen": [f"tcp/127.0.0.1:{port}"], "tracking.enabled": tracking, **extra}
+    """The mock config with only the rope, on ``tcp/127.0.0.1:<port>``; the worker initialises on the run itself
+    (the live initialisation before recording is tested in test_liveinit.py)."""
+    overrides: dict[str, Any] = {"bus.listen": [f"tcp/127.0.0.1:{port}"], "tracking.enabled": tracking,
+                                 **NO_LIVE_INIT, **extra}
     if small:
         overrides.update({"station.camera.width": 160, "station.camera.height": 120, "plan.episode_seconds": 1.0})
     cfg = load_config(DEFAULT_CONFIG, overrides)

@@ -15,7 +15,7 @@ import pytest
 from orchestrator.recorder import EpisodeWriter
 from orchestrator.report import ReportError, build_report, draw_thumbnail, project
 from tdcommon.types import CameraIntrinsics, RGBDFrame
-from tests.conftest import REPO
+from tests.conftest import REPO, copy_session
 
 W, H = 160, 120
 T_CAM = np.array([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 1.0], [0, 0, 0, 1]])  # 1 m above, looking down
@@ -55,6 +55,11 @@ def _session(folder: Path) -> tuple[np.ndarray, list[float], list[float], Camera
         w.close({**meta, "episode_index": e, "complete": True, "fault": e == 1})
     run = {"pass": 0, "object": "rope", "program": "rope_swing", "speed": "fast", "repeat": 0, "attempt": 1}
     lines = [{"type": "header", "format": "trackdeform-journal/1"}, {"type": "session", "index": 0},
+             {**run, "type": "live_init", "outcome": "ok", "reason": None, "seconds": 6.84, "track_id": "t1",
+              "attempts": [{"outcome": "ok", "metrics": {"n_keypoints": 20, "abs_mm": 0.012, "edge_error": 0.0012,
+                                                          "gripper_distance_m": {"left": 0.011, "right": 0.009}}}]},
+             {**run, "type": "live_init", "object": "cloth", "outcome": "failed", "seconds": 20.5,
+              "reason": "36 keypoints, expected 49", "attempts": [{"outcome": "failed"}] * 3, "track_id": None},
              {"type": "start", **run}, {**run, "type": "run", "outcome": "done", "reason": None,
                                         "episodes": ["episode_000000.mcap", "episode_000001.mcap"]},
              {**run, "type": "start", "speed": "slow"},
@@ -77,6 +82,11 @@ def test_report_tables_from_recorded_keypoints(tmp_path: Path) -> None:
     assert cells[6] == f"{100 * np.mean(np.array(abs_mm) < 5):.1f}"
     assert cells[8] == f"{100 * np.mean(np.array(cd_mm) < 10):.1f}"
     assert "program not safe at slow" in html and "skipped" in html
+    table = html[html.index('id="live-init"'):html.index("</table>", html.index('id="live-init"'))]
+    rows = [re.findall(r"<td[^>]*>([^<]*)</td>", r) for r in table.split("</tr>")[1:3]]
+    assert rows[0] == ["rope", "rope_swing · fast · #1", "ok", "1", "6.8",
+                       "20 keypoints, edge error 0.01 mm (0.001 of an edge), gripper left 11 mm / right 9 mm"]
+    assert rows[1] == ["cloth", "rope_swing · fast · #1", "failed", "3", "20.5", "36 keypoints, expected 49"]
     assert "1 episode(s) flagged with a fault" in html and ">3</b>frames dropped" in html
     imgs = re.findall(r'<img src="([^"]+)"', html)
     assert len(imgs) == 1 + 1 + 3  # trajectory, per-run plot, 3 thumbnails
@@ -141,16 +151,11 @@ def browser_check(page: Path, tmp: Path) -> dict:
 
 
 @pytest.mark.slow
-def test_report_of_a_sim_time_demo_opens_in_chromium(tmp_path: Path, port: int) -> None:
+def test_report_of_a_sim_time_demo_opens_in_chromium(tmp_path: Path, demo_10s: Path) -> None:
     """A 10 s simulated-time demo, its report (runs tracked offline), loaded in headless Chromium."""
     if chromium() is None:
         pytest.skip("chromium is not installed (Debian package `chromium`; .ci/run installs it)")
-    out = tmp_path / "demo"
-    proc = subprocess.run(
-        [sys.executable, "-m", "orchestrator.cli", "demo", "--sim-time", "--seconds", "10", "--out", str(out),
-         "--port", str(port), "--no-tracking"], capture_output=True, text=True, timeout=300, cwd=REPO,
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = copy_session(demo_10s, tmp_path / "demo")
     rep = subprocess.run(
         [sys.executable, "-m", "orchestrator.cli", "report", str(out), "--out", str(tmp_path / "report"),
          "--track-missing"], capture_output=True, text=True, timeout=600, cwd=REPO,

@@ -26,16 +26,13 @@ from orchestrator.retrack import (
     read_progress_journal,
 )
 from tdrecord import FrameSource, Sequence, read_reference_npz
-from tests.conftest import REPO, free_port, make_frame
+from tests.conftest import REPO, cli, copy_session, make_frame
 
 TOL_M = 1e-6
 HAVE_RAY = importlib.util.find_spec("ray") is not None
 
 
-def _cli(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    return subprocess.run([sys.executable, "-m", "orchestrator.cli", *args], capture_output=True, text=True,
-                          timeout=timeout, cwd=REPO, env=env)
+_cli = cli
 
 
 def _version_arrays(session: Path, version: str) -> dict[str, np.ndarray]:
@@ -47,14 +44,11 @@ def _version_arrays(session: Path, version: str) -> dict[str, np.ndarray]:
 
 
 @pytest.fixture(scope="module")
-def tracked(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, np.ndarray]]:
-    """A 10 s simulated-time demo (one program run, 2 episodes, no live tracking) and its `trackdeform track`
+def tracked(tmp_path_factory: pytest.TempPathFactory, demo_10s: Path) -> tuple[Path, dict[str, np.ndarray]]:
+    """A copy of the shared 10 s demo (one program run, 2 episodes, no live tracking) and its `trackdeform track`
     keypoints (final = the reference npz's, raw)."""
     root = tmp_path_factory.mktemp("retrack")
-    session = root / "demo"
-    r = _cli("demo", "--sim-time", "--seconds", "10", "--out", str(session), "--port", str(free_port()),
-             "--no-tracking")
-    assert r.returncode == 0, r.stderr[-3000:]
+    session = copy_session(demo_10s, root / "demo")
     r = _cli("track", str(session), "--out", str(root / "track"), "--json")
     assert r.returncode == 0, r.stderr[-3000:]
     final = read_reference_npz(root / "track" / "3d_keypoints.npz").keypoints  # m
