@@ -66,6 +66,18 @@ def demo_10s(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
+@pytest.fixture(scope="session")
+def demo_10s_track(demo_10s: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, Any]]:
+    """``trackdeform track`` of the shared 10 s demo (it only reads the session): the output folder (the reference
+    layout's 3d_keypoints.npz and 3d_keypoints_raw.npz) and the printed metrics."""
+    import json
+
+    out = tmp_path_factory.mktemp("demo10track")
+    r = cli("track", str(demo_10s), "--out", str(out), "--json")
+    assert r.returncode == 0, r.stderr[-3000:]
+    return out, json.loads(r.stdout)
+
+
 def copy_session(src: Path, dst: Path) -> Path:
     """A private copy of a recorded session folder at ``dst``."""
     shutil.copytree(src, dst)

@@ -106,21 +106,10 @@ def test_demo_with_tracking_worker_records_keypoints(tmp_path: Path, port: int) 
     assert k["abs_mm"] is not None and k["abs_mm"] < 10.0
 
 
-def test_offline_track_writes_reference_npz(tmp_path: Path, port: int) -> None:
-    cfg = _mock(port, "rope")
-    data = cfg.model_dump()
-    data["bus"]["enabled"] = False
-    data["station"]["camera"].update(width=640, height=480)  # the mock resolution the tracker is tuned for
-    cfg = type(cfg).model_validate(data)
-    Session(cfg, tmp_path / "rec", SimClock()).run(max_seconds=10.0, loop=True)
-    proc = subprocess.run(
-        [sys.executable, "-m", "orchestrator.cli", "track", str(tmp_path / "rec"), "--out", str(tmp_path / "kp"),
-         "--json"],
-        capture_output=True, text=True, timeout=300,
-    )
-    assert proc.returncode == 0, proc.stderr
-    metrics = json.loads(proc.stdout)
+def test_offline_track_writes_reference_npz(demo_10s_track: tuple[Path, dict]) -> None:
+    """``trackdeform track`` of a 10 s simulated-time rope session (640x480, recorded without live tracking)."""
+    out, metrics = demo_10s_track
     assert metrics["tracked_frames"] > 200 and metrics["CD"] < 10.0 and metrics["gt_rmse_mm"] < 5.0
-    ref = np.load(tmp_path / "kp" / "3d_keypoints.npz")
+    ref = np.load(out / "3d_keypoints.npz")
     assert ref["full"].shape == (300, 20, 3) and ref["edge_connection"].shape == (19, 2)
     assert 5.0 < np.nanmedian(ref["reference_lengths"]) < 60.0  # millimetres

@@ -91,15 +91,15 @@ def _eval(*args: str) -> dict:
 
 @pytest.mark.slow
 def test_eval_ablations_and_baselines_on_a_short_session(session: Path) -> None:
-    abl = _eval("ablations", str(session), "--max-frames", "120")
+    abl = _eval("ablations", str(session), "--max-frames", "90")  # ~100 tracked frames: the rope's 2 runs
     assert len(abl["captures"]) == 2
     rows = {r["method"]: r for r in abl["rows"]}
     assert list(rows) == ["full", "w/o anchors", "w/o edge projection", "w/o cloud projection"]
     full = rows["full"]
-    assert full["object"] == "dlo" and full["tracked_frames"] > 100 and full["Abs"] < 3.0 and full["GT"] < 5.0
+    assert full["object"] == "dlo" and full["tracked_frames"] > 80 and full["Abs"] < 3.0 and full["GT"] < 5.0
     assert rows["w/o edge projection"]["Abs"] > full["Abs"]  # the edge-length term keeps the spacing
     assert rows["w/o cloud projection"]["CD"] > full["CD"]  # without it the keypoints leave the cloud
-    base = _eval("baselines", str(session), "--max-frames", "120")
+    base = _eval("baselines", str(session), "--max-frames", "90")
     rows = {r["method"]: r for r in base["rows"]}
     assert list(rows) == ["TrackDeform3D", "CPD", "nearest neighbour"]
     assert rows["TrackDeform3D"]["Abs"] == pytest.approx(full["Abs"])  # the same method, the same frames

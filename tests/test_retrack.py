@@ -44,15 +44,14 @@ def _version_arrays(session: Path, version: str) -> dict[str, np.ndarray]:
 
 
 @pytest.fixture(scope="module")
-def tracked(tmp_path_factory: pytest.TempPathFactory, demo_10s: Path) -> tuple[Path, dict[str, np.ndarray]]:
+def tracked(tmp_path_factory: pytest.TempPathFactory, demo_10s: Path,
+            demo_10s_track: tuple[Path, dict]) -> tuple[Path, dict[str, np.ndarray]]:
     """A copy of the shared 10 s demo (one program run, 2 episodes, no live tracking) and its `trackdeform track`
     keypoints (final = the reference npz's, raw)."""
-    root = tmp_path_factory.mktemp("retrack")
-    session = copy_session(demo_10s, root / "demo")
-    r = _cli("track", str(session), "--out", str(root / "track"), "--json")
-    assert r.returncode == 0, r.stderr[-3000:]
-    final = read_reference_npz(root / "track" / "3d_keypoints.npz").keypoints  # m
-    raw = np.load(root / "track" / "3d_keypoints_raw.npz")["raw"]
+    session = copy_session(demo_10s, tmp_path_factory.mktemp("retrack") / "demo")
+    track = demo_10s_track[0]
+    final = read_reference_npz(track / "3d_keypoints.npz").keypoints  # m
+    raw = np.load(track / "3d_keypoints_raw.npz")["raw"]
     return session, {"keypoints": final, "raw": raw}
 
 
