@@ -97,6 +97,7 @@ def test_eval_ablations_and_baselines_on_a_short_session(session: Path) -> None:
     assert list(rows) == ["full", "w/o anchors", "w/o edge projection", "w/o cloud projection"]
     full = rows["full"]
     assert full["object"] == "dlo" and full["tracked_frames"] > 80 and full["Abs"] < 3.0 and full["GT"] < 5.0
+    assert rows["w/o anchors"]["Abs"] == pytest.approx(full["Abs"])  # held at both ends: the paper's DLO row
     assert rows["w/o edge projection"]["Abs"] > full["Abs"]  # the edge-length term keeps the spacing
     assert rows["w/o cloud projection"]["CD"] > full["CD"]  # without it the keypoints leave the cloud
     base = _eval("baselines", str(session), "--max-frames", "90")

@@ -137,3 +137,27 @@ def test_consistent_anchors_check_a_lone_anchor_against_its_neighbours_predictio
     assert consistent_anchors(topo, np.array([0, 3]), good, 4, 0.15, X_pred, 0.02).all()
     assert consistent_anchors(topo, np.array([0, 3]), spur, 4, 0.15, X_pred, 0.02).tolist() == [True, False]
     assert consistent_anchors(topo, np.array([0, 3]), spur, 4, 0.15).all()  # without the prediction: unseen
+
+
+def test_without_anchors_the_grasped_keypoint_stays_at_the_tcp_and_detections_are_ignored(sequence):
+    """The ``use_anchors=False`` ablation leaves out re-detected anchors only: a grasped keypoint is the robot's
+    input and stays at its TCP; the initialisation is the full method's."""
+    import dataclasses
+
+    K, T, bg, frames = sequence
+    off = dataclasses.replace(P, use_anchors=False)
+    full_tr, off_tr = Tracker(P, K, T), Tracker(off, K, T)
+    f0, f1 = frames[0], frames[1]
+    tcp = f0.centreline[[0]] + [0.0, 0.0, 0.005]
+    cloud0 = _segment(K, T, bg, f0, None)
+    _, r_full = full_tr.initialise(cloud0, tcp=tcp)
+    _, r_off = off_tr.initialise(cloud0, tcp=tcp)
+    np.testing.assert_array_equal(r_full.keypoints, r_off.keypoints)  # the same initialisation
+    tcp1 = f1.centreline[[0]] + [0.0, 0.0, 0.005]
+    cloud1 = _segment(K, T, bg, f1, off_tr.keypoints)
+    r = off_tr.step(cloud1, tcp=tcp1, gripper_closed=np.array([True]))
+    assert np.allclose(r.keypoints[r.grasp_idx[0]], tcp1[0])
+    free_end = P.n_keypoints_1d - 1 if r.grasp_idx[0] == 0 else 0
+    r_full = full_tr.step(cloud1, tcp=tcp1, gripper_closed=np.array([True]))
+    # the free end is a re-detected (fixed) tip in the full method and moves freely without anchors
+    assert not np.allclose(r.keypoints[free_end], r_full.keypoints[free_end])

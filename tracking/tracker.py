@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import Enum
 
 import numpy as np
@@ -166,7 +166,9 @@ def track_frame(
     det_pos/det_kinds: re-detected anchors (D, 3) m / (D,).
     X_pred: (N, 3) m predicted keypoints (e.g. constant velocity) used to match anchors, default X_prev.
     An anchor not re-detected is left free this frame (warm-started at its previous position).
-    Keypoints held by a gripper (grasp_idx >= 0) are fixed at that gripper's TCP (G, 3) m.
+    Keypoints held by a gripper (grasp_idx >= 0) are fixed at that gripper's TCP (G, 3) m, also in the
+    ``use_anchors=False`` ablation, which leaves out the re-detected anchors only: the TCPs are the robot's
+    inputs, not detections (the paper's ablation, where a rope held at both ends tracks as the full method).
     Returns (X (N, 3) float64 m, number of matched anchors).
     """
     ai = topology.anchor_idx
@@ -199,7 +201,12 @@ def track_frame(
         keep = ~np.isin(idx[0], g[held])
         idx, pos = [idx[0][keep], g[held]], [pos[0][keep], np.asarray(tcp, np.float64).reshape(-1, 3)[held]]
         weight = np.concatenate([weight[keep], np.ones(int(held.sum()))])  # grasped: fixed at the TCP
-    aidx, apos = np.concatenate(idx), np.concatenate(pos)
+    if not params.use_anchors:  # the grasped keypoints only (appended last)
+        n_grasped = len(idx[1]) if len(idx) > 1 else 0
+        idx, pos, weight = idx[1:], pos[1:], weight[len(weight) - n_grasped:]
+        params = replace(params, use_anchors=True)
+    aidx = np.concatenate(idx) if idx else np.zeros(0, np.int64)
+    apos = np.concatenate(pos) if pos else np.zeros((0, 3))
     X = solve_keypoints(
         X_prev, topology.edges, topology.rest, aidx, apos, cloud, params.track_iterations, params, topology.colours,
         weight,
@@ -295,7 +302,10 @@ class Tracker:
             held = tcps[np.asarray(gripper_closed, bool)]
         else:  # no gripper states: a cloth's corner within grasp_gate_m of a TCP is held there (tracking pins it)
             held = tcps if kind == "2d" else None
-        ini = initialise(cloud, self.K, self.T, self.params, kind, root_hint=hint, held=held)
+        # the ablation switches are of the tracking step (the paper's Table II): every variant starts from the
+        # full method's initialisation
+        full = replace(self.params, use_anchors=True, use_edge_projection=True, use_cloud_projection=True)
+        ini = initialise(cloud, self.K, self.T, full, kind, root_hint=hint, held=held)
         self.topology = ini.topology
         self.keypoints = ini.keypoints
         if tcp is not None:
