@@ -400,7 +400,7 @@ class SimObject:
         held, limits, free_limits = self._lra  # (H,), (H, P) m, (H, P) m (inf for pinned particles)
         if not len(held):
             return x
-        d = x[None, :, :] - np.take(x, held, axis=0)[:, None, :]  # (H, P, 3)
+        d = x[None, :, :] - x.take(held, axis=0)[:, None, :]  # (H, P, 3)
         dist2 = np.einsum("hpk,hpk->hp", d, d)
         if not (dist2 > free_limits * free_limits).any():
             return x  # nothing too far from any held particle
@@ -429,13 +429,13 @@ class SimObject:
         moves x by W J^T lam. x: (P, 3); returns the new positions.
         """
         for i, j, rest, diag, couple, starts, ends, w in self._chains:
-            d = np.take(x, j, axis=0) - np.take(x, i, axis=0)
+            d = x.take(j, axis=0) - x.take(i, axis=0)
             length = np.maximum(np.sqrt(np.einsum("ij,ij->i", d, d)), 1e-12)
             n = d / length[:, None]
             off = couple * np.einsum("ij,ij->i", n[:-1], n[1:])
             lam = dptsv(diag, off, rest - length)[2]
             f = np.concatenate([n * lam[:, None], np.zeros((1, 3))])  # (C + 1, 3), last row: no edge
-            x = x + w * (np.take(f, ends, axis=0) - np.take(f, starts, axis=0))
+            x = x + w * (f.take(ends, axis=0) - f.take(starts, axis=0))
         return x
 
     def reset(self, tcp_poses: Sequence[tuple[str, np.ndarray]], settle_time: float = 1.5) -> None:
