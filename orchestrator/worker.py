@@ -37,6 +37,7 @@ from tracking.params import TrackingParams
 from tracking.pipeline import LivePipeline, PipelineOutput
 
 log = logging.getLogger("trackdeform.worker")
+PENDING_S = 5.0  # s a frame of a not yet announced run is retried before it is dropped
 
 
 def tracking_params(tracking: Any, category: str | None = None, n_keypoints: int | None = None) -> TrackingParams:
@@ -166,6 +167,10 @@ class Worker:
         self._reference_gap: int | None = None  # the pipeline's own, while a P0 / P1 initialisation overrides it
         self._announced: dict[str, Any] | None = None  # the newest run announcement of our session
         self._last_frame: int | None = None
+        # the newest frame naming a run not (yet) announced, kept for PENDING_S: its announcement may trail it,
+        # and in simulated time no newer frame comes until that frame is answered
+        self._pending: tuple[Any, float] | None = None
+        self._past_runs: set[str] = set()  # run ids announced before: their late frames are not pending
         self.stats = WorkerStats()
         self._run_key = self.bus.key("session", "run")
         self.bus.subscribe(self._run_key, callback=self._on_run)
@@ -198,6 +203,8 @@ class Worker:
             self.malformed.add("other_session", f"announcement of session {sid!r}, following {self.session_id!r}")
             return
         with self._lock:
+            if self._announced is not None:
+                self._past_runs.add(str(self._announced.get("run_id", "")))
             self._announced = msg if rid else None
 
     def _on_state(self, sample: Any) -> None:
@@ -240,7 +247,7 @@ class Worker:
             return run
         asked, when = self._asked
         now = time.monotonic()
-        if header_run != asked and now - when >= 0.5:
+        if now - when >= 0.5 and (header_run != asked or self._pending is not None):
             self._asked = (header_run, now)
             self._query_announcement(0.5)
             with self._lock:
@@ -248,19 +255,34 @@ class Worker:
         return run
 
     def step(self) -> bool:
-        """Process the newest frame if there is one; False when none was waiting."""
+        """Process the newest frame if there is one; False when none was waiting (a pending frame of a run not
+        yet announced is retried then, for up to PENDING_S)."""
+        sample = self.frame_sub.try_recv()
+        if sample is not None:
+            self._pending = None
+            self._handle(sample, time.monotonic(), retry=False)
+            return True
+        if self._pending is not None:
+            sample, since = self._pending
+            self._pending = None
+            if time.monotonic() - since <= PENDING_S:
+                time.sleep(0.05)
+                self._handle(sample, since, retry=True)
+        return False
+
+    def _handle(self, sample: Any, since: float, retry: bool) -> None:  # noqa: ANN401 - a zenoh sample
+        """Track one received frame (``since``: when it first came; ``retry``: it waited for its run)."""
         from tdcommon.wire import decode_frame
 
-        sample = self.frame_sub.try_recv()
-        if sample is None:
-            return False
         t0 = time.perf_counter()
         try:
             msg = decode_frame(sample.payload.to_bytes())
         except (ValueError, KeyError, TypeError) as e:
             self.malformed.add("frame", f"{type(e).__name__}: {e}")
-            return True
+            return
         frame = msg.frame
+        if retry:
+            self._last_frame = frame.frame_number - 1  # counted once, when it first came
         if self._last_frame is not None and frame.frame_number > self._last_frame + 1:
             self.stats.skipped += frame.frame_number - self._last_frame - 1  # ring channel: newest wins
         self._last_frame = frame.frame_number
@@ -268,13 +290,18 @@ class Worker:
         with self._lock:
             state = msg.joint_state or self._state  # the arms at the frame's capture time, when paired
         if run is None:
-            self.stats.no_run += 1
-            return True
+            self.stats.no_run += not retry
+            if msg.run.get("run_id") and str(msg.run.get("run_id")) not in self._past_runs:
+                self._pending = (sample, since)  # its announcement may trail it
+            return
         if msg.run.get("run_id", run["run_id"]) != run["run_id"]:  # a frame of another run: not ours to track
-            self.stats.other_run += 1  # the announced run decides; at a run change one old frame may be waiting
+            self.stats.other_run += not retry  # counted when it came (it may still be tracked, below)
+            if str(msg.run.get("run_id")) not in self._past_runs:  # perhaps the next run, announced late
+                self._pending = (sample, since)
+                return  # the announced run decides; at a run change one old frame may be waiting
             log.debug("frame %d of run %r skipped (tracking %r)", frame.frame_number, msg.run.get("run_id"),
                       run["run_id"])
-            return True
+            return
         pipe = self._pipeline_for(run, frame.intrinsics.K, msg.T_world_cam)
         if run.get("phase") == "init" and msg.run.get("init_step") == "move" and pipe.state == "waiting":
             # on the way from P0 to P1 the object is still moving: the initialisation waits for P1
@@ -284,7 +311,7 @@ class Worker:
             self.bus.put(self.key_out, keypoint_message(out, frame.frame_number, frame.device_stamp, run, ms))
             self.stats.frames += 1
             self.stats.published += 1
-            return True
+            return
         V = F = tcp = closed = None
         if state is not None:
             V, F, tcp, closed = self.arms.from_state(state)
@@ -303,7 +330,6 @@ class Worker:
         self.stats.busy_s += ms / 1e3
         if before != pipe.state:
             log.info("frame %d: %s -> %s %s", frame.frame_number, before, pipe.state, out.note)
-        return True
 
     def run(self, stop: threading.Event, max_frames: int | None = None) -> WorkerStats:
         """Poll with ``try_recv`` (a thread blocked in ``recv`` would make undeclare abort) until stopped."""

@@ -182,6 +182,36 @@ def test_forged_frame_with_another_run_does_not_reset_tracking(port: int) -> Non
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux only")
+def test_a_frame_ahead_of_its_run_announcement_is_tracked_once_it_comes(port: int) -> None:
+    """In simulated time the session waits for the answer to a run's first frame: a frame that overtook its
+    run's announcement waits at the worker (retried) and is tracked once the announcement arrives."""
+    from orchestrator.worker import Worker
+
+    cfg = mock_config(port)
+    with Bus(cfg.bus, cfg.station.name) as session_bus:
+        worker = Worker(cfg, session_id="S")
+        try:
+            run_key, frame_key = session_bus.key("session", "run"), session_bus.key("cam", "cam0", "frame")
+            announce = {"schema": "trackdeform.Run/1", "session_id": "S", "run_id": "R1", "object": "rope",
+                        "category": "dlo", "run_index": 0, "n_keypoints": 20}
+            published: list[dict] = []
+            session_bus.subscribe(session_bus.key("keypoints"), callback=lambda s: published.append(
+                decode_json(s.payload.to_bytes())))
+            session_bus.put(run_key, encode_json(announce))
+            wait_for(lambda: worker._announced is not None, 10, "the announcement")
+            session_bus.put(frame_key, encode_frame(make_frame(0, 160, 120), np.eye(4), "cam0", {"run_id": "R2"}))
+            wait_for(lambda: worker.step(), 10, "frame 0 at the worker")
+            assert worker._pending is not None and not published  # R2 is not announced yet: kept
+            session_bus.put(run_key, encode_json({**announce, "run_id": "R2", "run_index": 1}))
+            wait_for(lambda: worker._announced["run_id"] == "R2", 10, "the R2 announcement")
+            assert worker.step() is False  # no new frame: the pending one is retried
+            wait_for(lambda: len(published) == 1, 10, "its keypoint message")
+            assert published[0]["frame_number"] == 0 and published[0]["run_id"] == "R2"
+            assert worker._pending is None
+        finally:
+            worker.close()
+
+
 def test_worker_dies_with_its_parent(tmp_path: Path, port: int) -> None:
     cfg = mock_config(port)
     cfg_path = tmp_path / "c.json"
