@@ -139,6 +139,16 @@ def test_episode_report_counts_tracking_gaps() -> None:
 
 
 # ---------------------------------------------------------------------- the worker
+def _worker_keys(session_bus: Bus) -> tuple[str, str, dict[str, Any], list[dict]]:
+    """The run and frame keys, run R1's announcement of session S, and the keypoint messages published."""
+    announce = {"schema": "trackdeform.Run/1", "session_id": "S", "run_id": "R1", "object": "rope",
+                "category": "dlo", "run_index": 0, "n_keypoints": 20}
+    published: list[dict] = []
+    session_bus.subscribe(session_bus.key("keypoints"), callback=lambda s: published.append(
+        decode_json(s.payload.to_bytes())))
+    return session_bus.key("session", "run"), session_bus.key("cam", "cam0", "frame"), announce, published
+
+
 def test_forged_frame_with_another_run_does_not_reset_tracking(port: int) -> None:
     """The tracker switches runs only on the session's announcement, never on a frame header."""
     from orchestrator.worker import Worker
@@ -147,12 +157,7 @@ def test_forged_frame_with_another_run_does_not_reset_tracking(port: int) -> Non
     with Bus(cfg.bus, cfg.station.name) as session_bus:
         worker = Worker(cfg, session_id="S")
         try:
-            run_key, frame_key = session_bus.key("session", "run"), session_bus.key("cam", "cam0", "frame")
-            announce = {"schema": "trackdeform.Run/1", "session_id": "S", "run_id": "R1", "object": "rope",
-                        "category": "dlo", "run_index": 0, "n_keypoints": 20}
-            published: list[dict] = []
-            session_bus.subscribe(session_bus.key("keypoints"), callback=lambda s: published.append(
-                decode_json(s.payload.to_bytes())))
+            run_key, frame_key, announce, published = _worker_keys(session_bus)
 
             def send(n: int, run: dict[str, Any]) -> None:
                 session_bus.put(frame_key, encode_frame(make_frame(n, 160, 120), np.eye(4), "cam0", run))
@@ -191,12 +196,7 @@ def test_a_frame_ahead_of_its_run_announcement_is_tracked_once_it_comes(port: in
     with Bus(cfg.bus, cfg.station.name) as session_bus:
         worker = Worker(cfg, session_id="S")
         try:
-            run_key, frame_key = session_bus.key("session", "run"), session_bus.key("cam", "cam0", "frame")
-            announce = {"schema": "trackdeform.Run/1", "session_id": "S", "run_id": "R1", "object": "rope",
-                        "category": "dlo", "run_index": 0, "n_keypoints": 20}
-            published: list[dict] = []
-            session_bus.subscribe(session_bus.key("keypoints"), callback=lambda s: published.append(
-                decode_json(s.payload.to_bytes())))
+            run_key, frame_key, announce, published = _worker_keys(session_bus)
             session_bus.put(run_key, encode_json(announce))
             wait_for(lambda: worker._announced is not None, 10, "the announcement")
             session_bus.put(frame_key, encode_frame(make_frame(0, 160, 120), np.eye(4), "cam0", {"run_id": "R2"}))
