@@ -86,6 +86,9 @@ class Sample:
     rss_mb: float
     worker_cpu_s: float | None
     worker_rss_mb: float | None
+    render_pid: int | None  # the mock camera's render process (drivers/fake/render_process.py)
+    render_cpu_s: float | None
+    render_rss_mb: float | None
     load1: float  # the machine's 1-minute load average (it is shared)
 
 
@@ -125,16 +128,21 @@ def children(pid: int) -> list[int]:
     return out
 
 
-def worker_pid(daemon: int) -> int | None:
-    """The tracking worker among the daemon's children (its command line names the worker)."""
+def child_pid(daemon: int, name: bytes) -> int | None:
+    """The daemon's child whose command line holds ``name`` (b"orchestrator.worker", b"render_process")."""
     for c in children(daemon):
         try:
             cmd = Path(f"/proc/{c}/cmdline").read_bytes().replace(b"\0", b" ")
         except OSError:
             continue
-        if b"worker" in cmd:
+        if name in cmd:
             return c
     return None
+
+
+def worker_pid(daemon: int) -> int | None:
+    """The tracking worker among the daemon's children."""
+    return child_pid(daemon, b"orchestrator.worker")
 
 
 def proc_usage(pid: int) -> tuple[float, float] | None:
@@ -315,8 +323,11 @@ def sample(soak: Soak, daemon: subprocess.Popen[bytes]) -> None:
     wu = proc_usage(w) if w is not None else None
     if w is not None:
         soak.worker_pids.add(w)
+    r = child_pid(daemon.pid, b"render_process")
+    ru = proc_usage(r) if r is not None else None
     soak.samples.append(Sample(time.monotonic(), daemon.pid, u[0], u[1], wu[0] if wu else None,
-                               wu[1] if wu else None, os.getloadavg()[0]))
+                               wu[1] if wu else None, r if ru else None, ru[0] if ru else None,
+                               ru[1] if ru else None, os.getloadavg()[0]))
 
 
 # ---------------------------------------------------------------------- audit
@@ -460,8 +471,9 @@ def report(soak: Soak, config: Config, wall: float) -> bool:
         with_kp += int(read_episode_metadata(out / e["file"]).get("tracking", {}).get("with_keypoints", 0))
     print(f"live keypoints   : {with_kp} of {kp_frames} frames ({100 * with_kp / max(kp_frames, 1):.1f} %), "
           f"{len(soak.worker_pids)} worker process(es) seen")
-    print("daemon CPU / RSS : (CPU % over the previous sample; worker in brackets)")
-    print(f"  {'t s':>6} {'pid':>7} {'CPU %':>6} {'RSS MB':>7} {'[wCPU %':>8} {'wRSS MB]':>9} {'load':>5}")
+    print("daemon CPU / RSS : (CPU % over the previous sample; worker, then the mock camera's render process)")
+    print(f"  {'t s':>6} {'pid':>7} {'CPU %':>6} {'RSS MB':>7} {'[wCPU %':>8} {'wRSS MB]':>9} "
+          f"{'[rCPU %':>8} {'rRSS MB]':>9} {'load':>5}")
     start = soak.samples[0].t if soak.samples else 0.0
     prev: Sample | None = None
     rows = [s for i, s in enumerate(soak.samples) if i % max(1, len(soak.samples) // 25) == 0 or
@@ -472,8 +484,12 @@ def report(soak: Soak, config: Config, wall: float) -> bool:
         wcpu = (100 * (s.worker_cpu_s - prev.worker_cpu_s) / (s.t - prev.t)
                 if same and prev is not None and s.worker_cpu_s is not None and prev.worker_cpu_s is not None
                 and s.worker_cpu_s >= prev.worker_cpu_s else float("nan"))
+        rcpu = (100 * (s.render_cpu_s - prev.render_cpu_s) / (s.t - prev.t)
+                if same and prev is not None and s.render_pid is not None and prev.render_pid == s.render_pid
+                and s.render_cpu_s is not None and prev.render_cpu_s is not None else float("nan"))
         print(f"  {s.t - start:6.0f} {s.pid:7d} {cpu:6.1f} {s.rss_mb:7.0f} {wcpu:8.1f} "
-              f"{s.worker_rss_mb if s.worker_rss_mb is not None else float('nan'):9.0f} {s.load1:5.1f}")
+              f"{s.worker_rss_mb if s.worker_rss_mb is not None else float('nan'):9.0f} {rcpu:8.1f} "
+              f"{s.render_rss_mb if s.render_rss_mb is not None else float('nan'):9.0f} {s.load1:5.1f}")
         prev = s
     for pid in dict.fromkeys(s.pid for s in soak.samples):  # memory growth per daemon process, after start-up
         mine = [s for s in soak.samples if s.pid == pid]

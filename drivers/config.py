@@ -208,6 +208,10 @@ class FakeCameraConfig(_CameraBase):
                                   "[0, this], s")
     seed: int = 0
     stalls: tuple[FakeCameraStall, ...] = Field((), description="scheduled stalls (mock fault injection)")
+    render: Literal["auto", "inline", "process"] = Field(
+        "auto", description="where frames are rendered: 'process' in a child process (its CPU off the daemon's "
+        "interpreter lock, as a real camera's work is), 'inline' on the reading thread; 'auto': process under the "
+        "real clock, inline in simulated time (no start-up cost, everything in one process)")
 
 
 class RealSenseCameraConfig(_CameraBase):

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
 from drivers.base import Arm, DeviceError, Gripper, RGBDCamera, create_arm, create_camera, create_gripper
-from drivers.clock import SimClock
+from drivers.clock import RealClock, SimClock
 from drivers.config import FakeArmConfig, FakeCameraConfig, FakeGripperConfig, Pose, SimObjectConfig
 from drivers.fake.devices import FakeArm, SimStation
 from drivers.fake.render import mock_camera_pose
@@ -249,3 +251,68 @@ def test_fault_schedule_validation():
         FakeCameraConfig(stalls=[{"at_wall": 1.0, "seconds": 0.0}])
     with pytest.raises(ValidationError, match="kind"):
         FakeArmConfig(faults=[{"at_wall": 1.0, "kind": "explode"}])
+
+
+def _two_station_frames(render: str, n: int = 3, kill_child: bool = False) -> list:
+    """``n`` frames of a fresh seeded station whose camera renders ``render`` ("inline" / "process")."""
+    clock = SimClock(10.0)
+    st = SimStation(SimObjectConfig(category="dlo"), clock, seed=0, settle_time=0.5)
+    for n_ in ("left", "right"):
+        create_arm(FakeArmConfig(base=Pose(xyz=(0, BASE_Y[n_], 0)), home=HOME[n_]), name=n_, clock=clock,
+                   station=st).connect()
+    cam = create_camera(FakeCameraConfig(width=160, height=120, pose=mock_camera_pose(), clutter=2, render=render),
+                        clock=clock, station=st)
+    cam.connect()
+    try:
+        frames = [cam.read() for _ in range(n)]
+        if kill_child:
+            proc = cam._renderer._proc  # noqa: SLF001 - the child a device fault would take down
+            proc.kill()
+            proc.wait(5)
+            with pytest.raises(DeviceError, match="render process"):
+                cam.read()
+            assert cam._renderer is None  # noqa: SLF001 - closed, nothing left running
+            cam.connect()  # what the station's reconnect does: a new child
+            frames.append(cam.read())
+        return frames
+    finally:
+        cam.close()
+
+
+def test_render_process_gives_the_inline_frames_and_survives_its_death():
+    inline = _two_station_frames("inline", n=4)
+    process = _two_station_frames("process", n=3, kill_child=True)
+    for a, b in zip(inline[:3], process[:3], strict=True):
+        assert a.frame_number == b.frame_number
+        assert np.array_equal(a.color, b.color) and np.array_equal(a.depth, b.depth)  # bit-identical
+    assert process[3].frame_number > process[2].frame_number  # frames again after the reconnect
+    assert process[3].depth.shape == (120, 160) and (process[3].depth > 0).any()
+
+
+def test_streaming_camera_captures_on_time_while_the_reader_is_busy():
+    """Real clock + render process: the camera's own thread captures; only a reader later than the queue loses."""
+    clock = RealClock()
+    st = SimStation(SimObjectConfig(category="dlo"), clock, seed=0, settle_time=0.2)
+    for n in ("left", "right"):
+        create_arm(FakeArmConfig(base=Pose(xyz=(0, BASE_Y[n], 0)), home=HOME[n]), name=n, clock=clock,
+                   station=st).connect()
+    cam = create_camera(FakeCameraConfig(width=160, height=120, pose=mock_camera_pose(), clutter=2, queue_depth=6),
+                        clock=clock, station=st)
+    cam.connect()  # render "auto": a process under the real clock
+    try:
+        assert cam.streaming
+        first = cam.read(timeout=5.0)
+        time.sleep(0.1)  # the reader busy for 3 frame periods: the camera goes on capturing
+        burst = [cam.read(timeout=2.0) for _ in range(5)]
+        assert [f.frame_number for f in burst] == list(range(first.frame_number + 1, first.frame_number + 6))
+        assert all(abs(f.device_stamp - f.frame_number / 30) < 1e-9 for f in burst)  # stamped at capture
+        time.sleep(0.5)  # 15 frame periods: more than the queue holds
+        late = cam.read(timeout=2.0)
+        assert late.frame_number > burst[-1].frame_number + 6  # the older ones fell out of the queue
+        cam.inject_fault("drop", count=2)
+        numbers = [cam.read(timeout=2.0).frame_number for _ in range(10)]
+        assert 3 in np.diff(numbers)  # the two dropped frames were never captured
+        proc = cam._renderer._proc  # noqa: SLF001 - the child must be gone after close
+    finally:
+        cam.close()
+    assert not cam.streaming and proc.poll() is not None

@@ -7,24 +7,28 @@ devices implement the Protocols of :mod:`drivers.base` and register with the sta
 construction by name ("left" / "right"). Everything is timed on the injected :class:`Clock`,
 so with a ``SimClock`` a run is deterministic and as fast as the CPU allows.
 
-One module (~580 lines) on purpose: the four devices and the station share one lock, one clock and
+One module (~700 lines) on purpose: the four devices and the station share one lock, one clock and
 the station's lazily advanced simulation; each device is a thin view of it.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
 import zlib
+from collections import deque
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
 
 from drivers.base import DeviceError
-from drivers.clock import Clock
+from drivers.clock import Clock, RealClock
 from drivers.config import FakeArmConfig, FakeCameraConfig, FakeGripperConfig, SimObjectConfig
 from drivers.fake.render import DEPTH_SCALE, SceneRenderer
+from drivers.fake.render_process import RenderProcess
 from drivers.fake.sim_object import SimGroundTruth, SimObject
 from tdcommon.meshes import Mesh, sheet_mesh, tube_mesh
 from tdcommon.robot import PandaKinematics
@@ -33,6 +37,8 @@ from tdcommon.types import CameraIntrinsics, GripperState, JointMotion, JointSta
 PHYSICS_RATE = 300  # Hz; physics substeps on a fixed grid of absolute times (SimObject.max_substep)
 SUBSTEPS_PER_CHUNK = 1  # TCP poses from FK at every substep: results independent of the query pattern
 START_TOLERANCE = 0.02  # rad; a motion must start this close to the arm's current joints
+SIM_LAG_LIMIT_S = 1.0  # s; a streaming fake camera this far behind real time skips frames
+log = logging.getLogger(__name__)
 
 
 class SimStation:
@@ -485,6 +491,17 @@ class FakeGripper:
         return GripperState(stamp=now, width=self.width_at(now), grasped=grasped)
 
 
+@dataclass
+class _Shot:
+    """One captured frame of the fake camera, before it reaches the host."""
+
+    index: int  # frame number k, captured at k / fps
+    color: np.ndarray  # (H, W, 3) uint8
+    depth: np.ndarray  # (H, W) uint16 depth units
+    mask: np.ndarray | None  # (H, W) bool object pixels, if asked
+    ground_truth: SimGroundTruth
+
+
 class FakeCamera:
     """An RGB-D camera rendering the station at ``fps`` on the clock's 1/fps grid, with ground truth.
 
@@ -496,6 +513,13 @@ class FakeCamera:
     Faults: :meth:`inject_fault` drops the next ``count`` frames ("drop": a gap in frame_number)
     or makes the next read raise :class:`DeviceError` ("error"). ``config.stalls`` schedules stalls at
     wall-clock times (mapped onto the clock when the camera is created): no frame is captured inside one.
+
+    Two ways to run, same frames: with a render process under the real clock (``config.render``), the
+    camera *streams* as a device does: a thread of its own captures every frame into a queue of
+    ``queue_depth`` frames and :meth:`read` only takes the oldest one, so the reader's own work never
+    delays a capture. A frame rendered late (the host short of CPU) keeps its capture time and arm poses;
+    only a simulation more than ``SIM_LAG_LIMIT_S`` behind skips frames. Otherwise :meth:`read` renders
+    the frame it returns (simulated time: deterministic).
     """
 
     def __init__(
@@ -515,12 +539,17 @@ class FakeCamera:
         self.render_mask = render_mask
         self.last_mask: np.ndarray | None = None  # (H, W) bool object pixels of the last frame, if asked
         self._intrinsics = CameraIntrinsics.from_fov(config.width, config.height, config.hfov_deg)
-        self._renderer: SceneRenderer | None = None
+        self._renderer: SceneRenderer | RenderProcess | None = None
         self._last_index: int | None = None
         self._drops = 0
         self._errors: list[bool] = []
         self._stalls = [(wall_to_clock(clock, s.at_wall), s.seconds) for s in config.stalls]  # (start, length) s
         self._lock = threading.Lock()
+        self._cond = threading.Condition()  # the streamed frames: _queue, _stream_error
+        self._queue: deque[_Shot] = deque()
+        self._stream_error: DeviceError | None = None
+        self._stream: threading.Thread | None = None
+        self._stop_stream = threading.Event()
         station.add_camera(self)
 
     @property
@@ -528,30 +557,49 @@ class FakeCamera:
         """Pinhole intrinsics from the configured size and horizontal field of view."""
         return self._intrinsics
 
+    @property
+    def streaming(self) -> bool:
+        """Whether frames are captured on a thread of the camera's own (render process, real clock)."""
+        return self._stream is not None
+
     def connect(self) -> None:
         """Build the renderer (static scene pre-render, noise pools) and bring the simulation up to now.
 
         The object is created and settled here rather than at the first read, so the first frame
         costs no more than any other (the result is the same: the physics runs on a fixed grid).
+        A render process is waited for here, and a streaming camera starts capturing.
         """
         if self._renderer is None:
             c = self.config
-            self._renderer = SceneRenderer(
-                self._intrinsics,
-                c.pose.matrix(),
-                depth_noise=c.depth_noise,
-                edge_dropout=c.edge_dropout,
-                flying_pixels=c.flying_pixels,
-                clutter=c.clutter,
-                seed=c.seed,
-                object_color=self.station.object_config.color,
-            )
+            kwargs: dict[str, Any] = {
+                "intrinsics": self._intrinsics, "T_world_cam": c.pose.matrix(), "depth_noise": c.depth_noise,
+                "edge_dropout": c.edge_dropout, "flying_pixels": c.flying_pixels, "clutter": c.clutter,
+                "seed": c.seed, "object_color": self.station.object_config.color,
+            }
+            in_process = c.render == "process" or (c.render == "auto" and isinstance(self.clock, RealClock))
+            self._renderer = RenderProcess(kwargs, name=f"camera {self.id}") if in_process else SceneRenderer(**kwargs)
+            if isinstance(self._renderer, RenderProcess):
+                self._renderer.wait_ready()
         self._last_index = None
         self.station.advance_to(self.clock.now())
+        if isinstance(self._renderer, RenderProcess) and isinstance(self.clock, RealClock) and self._stream is None:
+            with self._cond:
+                self._queue.clear()
+                self._stream_error = None
+            self._stop_stream.clear()
+            self._stream = threading.Thread(target=self._produce, args=(self._renderer,),
+                                            name=f"fake-camera-{self.id}", daemon=True)
+            self._stream.start()
 
     def close(self) -> None:
-        """Stop streaming (idempotent)."""
-        self._renderer = None
+        """Stop streaming (idempotent); a render process exits."""
+        renderer, self._renderer = self._renderer, None
+        self._stop_stream.set()
+        if isinstance(renderer, RenderProcess):
+            renderer.close()  # also ends a render the capture thread waits for
+        if self._stream is not None:
+            self._stream.join(5.0)
+            self._stream = None
 
     def inject_fault(self, kind: Literal["drop", "error"] = "error", count: int = 1, recoverable: bool = True) -> None:
         """Drop the next ``count`` frames, or make the next ``count`` reads raise DeviceError."""
@@ -561,56 +609,131 @@ class FakeCamera:
             else:
                 self._errors.extend([recoverable] * int(count))
 
-    def read(self, timeout: float = 1.0) -> RGBDFrame:
-        """The next unread frame on the 1/fps grid (sleeping until its time), rendered from the station.
+    def _after_faults(self, k: int) -> int:
+        """Frame index ``k`` moved past injected drops and scheduled stalls (nothing is captured in those)."""
+        with self._lock:
+            k += self._drops
+            self._drops = 0
+        for start, length in self._stalls:  # a stalled device captures nothing inside the window
+            if start <= k / self.config.fps < start + length:
+                k = math.ceil((start + length) * self.config.fps - 1e-6)
+        return k
 
-        A reader later than ``queue_depth`` frames loses the older ones (a gap in frame_number). A frame
-        read late is rendered with the arms at its capture time and the object as simulated so far.
+    def _capture(self, renderer: SceneRenderer | RenderProcess, k: int) -> _Shot:
+        """Render frame ``k`` from the station: the arms at its capture time, the object as simulated so far."""
+        st = self.station
+        t_frame = k / self.config.fps
+        st.advance_to(t_frame)
+        gt = st.ground_truth()
+        arms, obj = st.arm_meshes(t_frame), st.object_mesh()
+        color = np.asarray(st.object_config.color, dtype=np.float32)  # after set_object too
+        if isinstance(renderer, RenderProcess):
+            rgb, depth, mask = renderer.render(arms, obj, object_color=color, frame_index=k,
+                                               with_mask=self.render_mask)
+        else:
+            renderer.object_color = color
+            out = renderer.render(arms, obj, frame_index=k, with_mask=self.render_mask)
+            rgb, depth, mask = out.color, out.depth, out.mask
+        return _Shot(k, rgb, depth, mask, gt)
+
+    def _produce(self, renderer: RenderProcess) -> None:
+        """The streaming camera's capture thread: every frame on its time into the queue (older ones fall out)."""
+        fps, depth = self.config.fps, self.config.queue_depth
+        k = math.ceil(self.clock.now() * fps - 1e-6)
+        while True:
+            k = self._after_faults(k)
+            if self._stop_stream.wait(max(0.0, k / fps - self.clock.now())):
+                return
+            try:
+                shot = self._capture(renderer, k)
+            except DeviceError as e:
+                with self._cond:
+                    self._stream_error = e
+                    self._cond.notify_all()
+                return
+            with self._cond:
+                self._queue.append(shot)
+                while len(self._queue) > depth:
+                    self._queue.popleft()
+                self._cond.notify_all()
+            # Starved of CPU, the simulation renders late, but every frame keeps its capture time (a device's
+            # capture does not wait for the host); only a world that cannot keep up at all skips ahead.
+            behind = math.floor(self.clock.now() * fps + 1e-6) - k
+            if behind > SIM_LAG_LIMIT_S * fps:
+                log.warning("camera %s: the simulation is %.1f s behind real time (CPU): %d frames skipped",
+                            self.id, behind / fps, behind)
+                k += behind
+            k += 1
+
+    def _next_streamed(self, timeout: float) -> _Shot:
+        """The oldest frame in the queue, waiting up to ``timeout`` s for one."""
+        deadline = self.clock.now() + timeout
+        with self._cond:
+            if self._last_index is None:  # first read after a connect: frames from now on
+                earliest = self.clock.now() * self.config.fps - 1e-6
+                while self._queue and self._queue[0].index < earliest:
+                    self._queue.popleft()
+            while not self._queue:
+                if self._stream_error is not None:
+                    self._renderer = None  # closed: the reconnect starts a new one
+                    raise self._stream_error
+                remaining = deadline - self.clock.now()
+                if remaining <= 0:
+                    raise DeviceError(f"camera {self.id}: no frame within {timeout} s", recoverable=True)
+                self._cond.wait(remaining)
+            return self._queue.popleft()
+
+    def read(self, timeout: float = 1.0) -> RGBDFrame:
+        """The next unread frame on the 1/fps grid (waiting for its time), rendered from the station.
+
+        A reader later than ``queue_depth`` frames loses the older ones (a gap in frame_number).
         """
         with self._lock:
             renderer = self._renderer
-            if renderer is None:
-                raise DeviceError(f"camera {self.id}: not connected", recoverable=True)
-            fps = self.config.fps
+        if renderer is None:
+            raise DeviceError(f"camera {self.id}: not connected", recoverable=True)
+        fps = self.config.fps
+        if self._stream is not None:
+            shot = self._next_streamed(timeout)
+        else:
             now = self.clock.now()
             if self._last_index is None:  # first frame: the one captured at or after now
                 k = math.ceil(now * fps - 1e-6)
             else:  # the next unread frame, unless it fell out of the device queue meanwhile
                 k = max(self._last_index + 1, math.floor(now * fps + 1e-6) - self.config.queue_depth + 1)
-            k += self._drops
-            self._drops = 0
-            for start, length in self._stalls:  # a stalled device captures nothing inside the window
-                if start <= k / fps < start + length:
-                    k = math.ceil((start + length) * fps - 1e-6)
-            t_frame = k / fps
-            if t_frame - now > timeout:
+            k = self._after_faults(k)
+            if k / fps - now > timeout:
                 self.clock.sleep_until(now + timeout)
                 raise DeviceError(f"camera {self.id}: no frame within {timeout} s", recoverable=True)
-            self.clock.sleep_until(t_frame)
-            self._last_index = k
+            self.clock.sleep_until(k / fps)
+            shot = None
+        with self._lock:
+            self._last_index = k = shot.index if shot is not None else k
             if self._errors:
                 recoverable = self._errors.pop(0)
                 raise DeviceError(f"camera {self.id}: injected frame error", recoverable=recoverable)
-            st = self.station
-            st.advance_to(t_frame)
-            gt = st.ground_truth()
-            renderer.object_color = np.asarray(st.object_config.color, dtype=np.float32)  # after set_object too
-            out = renderer.render(st.arm_meshes(t_frame), st.object_mesh(), frame_index=k, with_mask=self.render_mask)
-            self.last_mask = out.mask
-            c = self.config
-            if c.latency or c.latency_jitter:  # delivered late: the host stamps it on arrival
-                jitter = c.latency_jitter * float(np.random.default_rng((c.seed, k)).random())
-                self.clock.sleep_until(t_frame + c.latency + jitter)
-            return RGBDFrame(
-                color=out.color,
-                depth=out.depth,
-                depth_scale=DEPTH_SCALE,
-                intrinsics=self._intrinsics,
-                device_stamp=self.device_time(t_frame),
-                host_stamp=self.clock.now(),
-                frame_number=k,
-                ground_truth=gt,
-            )
+        if shot is None:
+            try:
+                shot = self._capture(renderer, k)
+            except DeviceError:
+                self._renderer = None  # a render process failed and is closed: the reconnect starts a new one
+                raise
+        self.last_mask = shot.mask
+        t_frame = k / fps
+        c = self.config
+        if c.latency or c.latency_jitter:  # delivered late: the host stamps it on arrival
+            jitter = c.latency_jitter * float(np.random.default_rng((c.seed, k)).random())
+            self.clock.sleep_until(t_frame + c.latency + jitter)
+        return RGBDFrame(
+            color=shot.color,
+            depth=shot.depth,
+            depth_scale=DEPTH_SCALE,
+            intrinsics=self._intrinsics,
+            device_stamp=self.device_time(t_frame),
+            host_stamp=self.clock.now(),
+            frame_number=k,
+            ground_truth=shot.ground_truth,
+        )
 
     def device_time(self, t: float) -> float:
         """The camera's own clock at host time ``t``, s (``clock_offset`` and ``clock_drift_ppm``)."""
