@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -74,7 +75,7 @@ def main() -> None:
     ap.add_argument("--preset", default=ColorOutputConfig().preset)
     ap.add_argument("--gop", type=int, default=ColorOutputConfig().gop)
     ap.add_argument("--jpeg-quality", type=int, default=ColorOutputConfig().jpeg_quality)
-    ap.add_argument("--depth", default="png", choices=["png", "raw"])
+    ap.add_argument("--depth", default="png", choices=["png", "planes", "raw"])
     ap.add_argument("--compression", default="zstd", choices=["zstd", "lz4", "none"])
     ap.add_argument("--state-rate", type=float, default=250.0, help="arm-state samples per second (default 250)")
     ap.add_argument("--episode-seconds", type=float, default=5.0)
@@ -178,9 +179,7 @@ def main() -> None:
           "depth bit-exact": exact, "0 frames lost": lost == 0 and not rec.errors}
     print("targets       : " + ", ".join(f"{k} {'met' if v else 'MISSED'}" for k, v in ok.items()))
     if not args.out and not args.keep:
-        for p in rec.finished:
-            p.unlink(missing_ok=True)
-        out.rmdir()
+        shutil.rmtree(out)  # the episodes and the digests written beside them
 
 
 if __name__ == "__main__":

@@ -224,7 +224,9 @@ class ColorOutputConfig(StrictModel):
 class DepthOutputConfig(StrictModel):
     """How depth is stored, always lossless: 16-bit PNG (foxglove.CompressedImage) or raw 16UC1."""
 
-    codec: Literal["png", "raw"] = Field("png", description="png (default) or raw 16UC1 (both bit-exact)")
+    codec: Literal["png", "planes", "raw"] = Field(
+        "png", description="png (default: 16-bit PNG, which Foxglove draws), planes (about 20 % smaller on noisy "
+        "stereo depth; Foxglove opens it but does not draw it) or raw 16UC1; all bit-exact")
 
 
 class OutputConfig(StrictModel):

@@ -3,7 +3,8 @@
 Channels (Foxglove schemas where one fits, so a file opens in Foxglove):
 
 - ``/cam/<id>/color``  foxglove.CompressedVideo h264 (default), CompressedImage jpeg or RawImage rgb8
-- ``/cam/<id>/depth``  foxglove.CompressedImage 16-bit png (default) or RawImage 16UC1, mm, lossless
+- ``/cam/<id>/depth``  foxglove.CompressedImage 16-bit png (default), trackdeform.CompressedDepth planes or
+  RawImage 16UC1, mm, lossless
   (codecs and settings: tdrecord.codecs, ``output.color`` / ``output.depth`` of the config)
 - ``/cam/<id>/calibration``  foxglove.CameraCalibration (frame ``cam``)
 - ``/cam/<id>/frame_info``  JSON {frame_number, device_stamp, host_stamp, color_keyframe}
@@ -47,7 +48,15 @@ from orchestrator.fsutil import fsync_dir
 from tdcommon.types import RGBDFrame
 from tdcommon.wire import ground_truth_to_json
 from tdrecord.channels import SCHEMAS, keypoints_record
-from tdrecord.codecs import SCHEMA_COMPRESSED, SCHEMA_RAW, SCHEMA_VIDEO, ColorEncoder, DepthEncoder, EncodedImage
+from tdrecord.codecs import (
+    SCHEMA_COMPRESSED,
+    SCHEMA_DEPTH,
+    SCHEMA_RAW,
+    SCHEMA_VIDEO,
+    ColorEncoder,
+    DepthEncoder,
+    EncodedImage,
+)
 from tdrecord.digest import DigestWriter, digest_path
 from tdrecord.episodes import ACTIVE_SUFFIX, CLOSE_METADATA, OPEN_METADATA
 
@@ -74,6 +83,21 @@ def _quats_xyzw(R: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_matrix(R).as_quat()
+
+
+def _rename_message(fds: Any, full_name: str, new_full_name: str) -> None:
+    """Give message ``full_name`` of a FileDescriptorSet the name ``new_full_name`` (package.Message) in its own
+    file: the same fields under a name of ours (``trackdeform.CompressedDepth`` is foxglove.CompressedImage's)."""
+    package, _, message = full_name.rpartition(".")
+    new_package, _, new_message = new_full_name.rpartition(".")
+    for f in fds.file:
+        if f.package == package and any(m.name == message for m in f.message_type):
+            f.package, f.name = new_package, f"{new_package.replace('.', '/')}/{new_message}.proto"
+            for m in f.message_type:
+                if m.name == message:
+                    m.name = new_message
+            return
+    raise ValueError(f"no message {full_name} in the descriptor set")
 
 
 class EpisodeWriter:
@@ -134,20 +158,26 @@ class EpisodeWriter:
         self._color_enc = ColorEncoder(c.codec, crf=c.crf, preset=c.preset, gop=c.gop, jpeg_quality=c.jpeg_quality,
                                        fps=fps)
         self._depth_enc = DepthEncoder(self.depth_config.codec)
-        self._image_cls = {SCHEMA_RAW: RawImage, SCHEMA_COMPRESSED: CompressedImage, SCHEMA_VIDEO: CompressedVideo}
+        self._image_cls = {SCHEMA_RAW: RawImage, SCHEMA_COMPRESSED: CompressedImage, SCHEMA_VIDEO: CompressedVideo,
+                           SCHEMA_DEPTH: CompressedImage}  # planes depth: CompressedImage's fields, its own name
         color_cls = {"h264": CompressedVideo, "jpeg": CompressedImage, "raw": RawImage}[c.codec]
-        depth_cls = {"png": CompressedImage, "raw": RawImage}[self.depth_config.codec]
+        depth_cls = {"png": CompressedImage, "planes": CompressedImage, "raw": RawImage}[self.depth_config.codec]
 
-        def proto(cls: Any) -> int:
+        def proto(cls: Any, name: str | None = None) -> int:
             fds = build_file_descriptor_set(cls)
-            return self._w.register_schema(cls.DESCRIPTOR.full_name, "protobuf", fds.SerializeToString())
+            if name is not None:
+                _rename_message(fds, cls.DESCRIPTOR.full_name, name)
+            return self._w.register_schema(name or cls.DESCRIPTOR.full_name, "protobuf", fds.SerializeToString())
 
         def js(name: str, schema: dict[str, Any]) -> int:
             return self._w.register_schema(name, "jsonschema", json.dumps(schema).encode())
 
         calib, tf, scene = proto(CameraCalibration), proto(FrameTransforms), proto(SceneUpdate)
         color_sid = proto(color_cls)
-        depth_sid = color_sid if depth_cls is color_cls else proto(depth_cls)
+        if self.depth_config.codec == "planes":
+            depth_sid = proto(CompressedImage, SCHEMA_DEPTH)
+        else:
+            depth_sid = color_sid if depth_cls is color_cls else proto(depth_cls)
         cam = f"/cam/{camera_id}"
         for topic, sid, enc in [
             (f"{cam}/color", color_sid, "protobuf"),

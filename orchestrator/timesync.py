@@ -46,7 +46,7 @@ class ClockOffsetEstimator:
         self.resets = 0
 
     def add(self, device: float, host: float) -> None:
-        """Take one frame's stamps (s)."""
+        """Take one frame's stamps (s); the envelope is refitted only when one of its points changed."""
         y = host - device
         if self._fit is not None and abs(y - self.envelope(device)) > RESET_S:
             self.reset()
@@ -59,6 +59,8 @@ class ClockOffsetEstimator:
                 self._blocks.popleft()
         elif y < self._cur[1]:
             self._cur = (device, y)
+        else:
+            return
         self._refit()
 
     def reset(self) -> None:
@@ -73,8 +75,10 @@ class ClockOffsetEstimator:
         if len(pts) < 3 or pts[-1, 0] - pts[0, 0] < 2 * BLOCK_S:
             self._fit = (x_ref, float(pts[:, 1].min()), 0.0)
             return
-        x = pts[:, 0] - x_ref
-        b, a = np.polyfit(x, pts[:, 1], 1)
+        x, y = pts[:, 0] - x_ref, pts[:, 1]
+        dx = x - x.mean()
+        b = float(dx @ (y - y.mean()) / (dx @ dx))  # least-squares line (what polyfit(x, y, 1) gives, cheaper)
+        a = float(y.mean() - b * x.mean())
         # the line must stay under every block minimum (an envelope): shift it down to the lowest residual
         a += min(0.0, float(np.min(pts[:, 1] - (a + b * x))))
         self._fit = (x_ref, float(a), float(b))

@@ -15,6 +15,11 @@ Depth (H, W) uint16 millimetres (0 = no data) is stored lossless as one of:
   filter and the deflate stream Huffman-coded only by zlib-ng (about 6 ms a 1280×720 frame; LZ77 matching
   finds nothing in depth noise, and OpenCV's PNG writer costs 4x as much for the same size). Any PNG reader
   gives the exact values back.
+- ``planes``: ``trackdeform.CompressedDepth`` (the fields of ``foxglove.CompressedImage``, format ``planes``):
+  each sample minus its left neighbour (the first column: minus the one above), zigzag-mapped, and the high
+  and the low bytes of those residuals zstd-compressed as two planes (:func:`encode_planes`). About 20 %
+  smaller than the PNG on stereo depth noise, whose two bytes a sample PNG codes with one Huffman table;
+  Foxglove opens the channel but does not draw it as an image.
 - ``raw``: ``foxglove.RawImage`` ``16UC1`` (little-endian).
 
 PyAV, zlib and OpenCV release the GIL while they work, so encoders of one frame can run on threads.
@@ -29,6 +34,7 @@ from fractions import Fraction
 from typing import Any, Literal
 
 import numpy as np
+import zstandard
 
 try:  # zlib-ng: same API and output format as zlib, about twice as fast for the same size
     from zlib_ng import zlib_ng as _deflate
@@ -36,15 +42,18 @@ except ImportError:  # pragma: no cover - a plain zlib gives the same files, onl
     _deflate = zlib  # type: ignore[assignment]
 
 ColorCodec = Literal["h264", "jpeg", "raw"]
-DepthCodec = Literal["png", "raw"]
+DepthCodec = Literal["png", "planes", "raw"]
 H264_PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium")
 
 SCHEMA_VIDEO = "foxglove.CompressedVideo"
 SCHEMA_COMPRESSED = "foxglove.CompressedImage"
 SCHEMA_RAW = "foxglove.RawImage"
+SCHEMA_DEPTH = "trackdeform.CompressedDepth"  # wire-identical to foxglove.CompressedImage; format "planes"
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_FILTER_SUB = 1
+_PLANES_MAGIC = b"TDP1"
+_PLANES_HEADER = struct.Struct("<4sIII")  # magic, width, height, bytes of the compressed high plane
 
 
 class CodecError(ValueError):
@@ -102,12 +111,56 @@ def decode_png(data: bytes, where: str = "PNG") -> np.ndarray:
     return img
 
 
+def encode_planes(depth: np.ndarray, level: int = 1) -> bytes:
+    """(H, W) uint16 -> the ``planes`` bytes: header, then the zstd high-byte plane and the zstd low-byte plane.
+
+    Residuals are taken modulo 2**16 (every value round-trips), zigzag-mapped so small negative ones stay
+    small: the high plane is almost all zeros and costs next to nothing, the low plane carries the noise.
+    """
+    d = np.asarray(depth)
+    if d.ndim != 2 or d.dtype != np.uint16 or d.size == 0:
+        raise CodecError(f"planes depth: expected a non-empty (H, W) uint16 array, got {d.dtype} {d.shape}")
+    h, w = d.shape
+    r = np.empty((h, w), dtype=np.uint16)
+    np.subtract(d[:, 1:], d[:, :-1], out=r[:, 1:])  # uint16 arithmetic wraps mod 2**16
+    np.subtract(d[1:, 0], d[:-1, 0], out=r[1:, 0])
+    r[0, 0] = d[0, 0]
+    sr = r.view(np.int16)
+    z = ((sr << 1) ^ (sr >> 15)).view(np.uint16)
+    c = zstandard.ZstdCompressor(level=level)
+    hi = c.compress((z >> 8).astype(np.uint8).tobytes())
+    lo = c.compress(z.astype(np.uint8).tobytes())  # astype keeps the low byte
+    return _PLANES_HEADER.pack(_PLANES_MAGIC, w, h, len(hi)) + hi + lo
+
+
+def decode_planes(data: bytes, where: str = "planes depth") -> np.ndarray:
+    """The ``planes`` bytes -> (H, W) uint16, exactly as encoded; CodecError naming ``where`` if they are not."""
+    n = _PLANES_HEADER.size
+    if len(data) < n:
+        raise CodecError(f"{where}: {len(data)} bytes is shorter than the planes header")
+    magic, w, h, n_hi = _PLANES_HEADER.unpack_from(data)
+    if magic != _PLANES_MAGIC or not 0 < w * h <= 1 << 28 or n + n_hi > len(data):
+        raise CodecError(f"{where}: not planes depth data (magic {magic!r}, {w}x{h}, high plane {n_hi} bytes)")
+    dz = zstandard.ZstdDecompressor()
+    try:
+        hi = dz.decompress(data[n:n + n_hi], max_output_size=w * h)
+        lo = dz.decompress(data[n + n_hi:], max_output_size=w * h)
+    except zstandard.ZstdError as e:
+        raise CodecError(f"{where}: a planes depth plane does not decompress ({e})") from e
+    if len(hi) != w * h or len(lo) != w * h:
+        raise CodecError(f"{where}: planes of {len(hi)} / {len(lo)} bytes for a {w}x{h} image")
+    z = (np.frombuffer(hi, np.uint8).astype(np.uint16) << 8 | np.frombuffer(lo, np.uint8)).reshape(h, w)
+    r = (z >> 1) ^ (np.uint16(0) - (z & 1))  # un-zigzag, mod 2**16
+    r[:, 0] = np.cumsum(r[:, 0], dtype=np.uint16)
+    return np.cumsum(r, axis=1, dtype=np.uint16)
+
+
 class DepthEncoder:
-    """Lossless depth: (H, W) uint16 mm -> EncodedImage (``png`` or ``raw``)."""
+    """Lossless depth: (H, W) uint16 mm -> EncodedImage (``png``, ``planes`` or ``raw``)."""
 
     def __init__(self, codec: DepthCodec = "png") -> None:
-        if codec not in ("png", "raw"):
-            raise CodecError(f"depth codec must be 'png' or 'raw', not {codec!r}")
+        if codec not in ("png", "planes", "raw"):
+            raise CodecError(f"depth codec must be 'png', 'planes' or 'raw', not {codec!r}")
         self.codec = codec
 
     def encode(self, depth_mm: np.ndarray) -> EncodedImage:
@@ -115,6 +168,8 @@ class DepthEncoder:
         h, w = depth_mm.shape
         if self.codec == "png":
             return EncodedImage(SCHEMA_COMPRESSED, "png", encode_png16(depth_mm), w, h)
+        if self.codec == "planes":
+            return EncodedImage(SCHEMA_DEPTH, "planes", encode_planes(depth_mm), w, h)
         data = np.ascontiguousarray(depth_mm, dtype="<u2").tobytes()
         return EncodedImage(SCHEMA_RAW, "16UC1", data, w, h, step=2 * w)
 
@@ -238,6 +293,10 @@ class ImageDecoder:
                     raise CodecError(f"{self.where}: not a decodable JPEG ({len(msg.data)} bytes)")
                 return np.ascontiguousarray(img[..., ::-1])
             raise CodecError(f"{self.where}: unsupported CompressedImage format {fmt!r} (expected png or jpeg)")
+        if schema == SCHEMA_DEPTH:
+            if fmt != "planes":
+                raise CodecError(f"{self.where}: unsupported {SCHEMA_DEPTH} format {fmt!r} (expected planes)")
+            return decode_planes(bytes(msg.data), self.where)
         if schema == SCHEMA_VIDEO:
             if fmt != "h264":
                 raise CodecError(f"{self.where}: unsupported CompressedVideo format {fmt!r} (expected h264)")

@@ -17,7 +17,9 @@ from tdrecord.codecs import (
     ColorEncoder,
     DepthEncoder,
     ImageDecoder,
+    decode_planes,
     decode_png,
+    encode_planes,
     encode_png16,
     h264_nal_types,
 )
@@ -56,6 +58,23 @@ def test_png16_is_bit_exact_on_every_value() -> None:
         encode_png16(d.astype(np.int32))
 
 
+def test_planes_depth_is_bit_exact_on_every_value_and_refuses_other_bytes() -> None:
+    rng = np.random.default_rng(1)
+    for d in (rng.integers(0, 65536, (37, 53), dtype=np.uint16),  # full range, no smoothness
+              _scene(3).depth, np.zeros((1, 1), np.uint16), np.full((4, 7), 65535, np.uint16)):
+        back = decode_planes(encode_planes(d))
+        assert back.dtype == np.uint16 and back.shape == d.shape
+        np.testing.assert_array_equal(back, d)
+    smooth = _scene(4).depth
+    assert len(encode_planes(smooth)) < len(encode_png16(smooth))  # the point of it, on noisy depth
+    data = encode_planes(smooth)
+    for bad in (b"", data[:10], b"XXXX" + data[4:], data[:-5]):
+        with pytest.raises(CodecError, match="where-it-was"):
+            decode_planes(bad, "where-it-was")
+    with pytest.raises(CodecError, match="uint16"):
+        encode_planes(smooth.astype(np.float32))
+
+
 def test_h264_stream_layout_keyframes_and_headers() -> None:
     enc = ColorEncoder("h264", crf=18, gop=8)
     images = [enc.encode(_scene(n).color) for n in range(20)]
@@ -85,7 +104,7 @@ def test_h264_refuses_odd_sizes_and_bad_settings() -> None:
 
 
 @pytest.mark.parametrize("codec", ["h264", "jpeg", "raw"])
-@pytest.mark.parametrize("depth_codec", ["png", "raw"])
+@pytest.mark.parametrize("depth_codec", ["png", "planes", "raw"])
 def test_every_encoding_reads_back(tmp_path: Path, codec: str, depth_codec: str) -> None:
     path = tmp_path / "episode_000000.mcap"
     w = EpisodeWriter(path, "cam0", color=ColorOutputConfig(codec=codec, gop=10),

@@ -312,6 +312,11 @@ def test_streaming_camera_captures_on_time_while_the_reader_is_busy():
         cam.inject_fault("drop", count=2)
         numbers = [cam.read(timeout=2.0).frame_number for _ in range(10)]
         assert 3 in np.diff(numbers)  # the two dropped frames were never captured
+        advance = st.advance_to
+        st.advance_to = lambda t: (time.sleep(0.04), advance(t))  # the scene now costs more than a frame period
+        slow = [cam.read(timeout=2.0) for _ in range(20)]  # behind: scene and render overlap, no frame lost
+        assert np.all(np.diff([f.frame_number for f in slow]) == 1)
+        assert all(abs(f.device_stamp - f.frame_number / 30) < 1e-9 for f in slow)
         proc = cam._renderer._proc  # noqa: SLF001 - the child must be gone after close
     finally:
         cam.close()

@@ -51,7 +51,7 @@ def _check(checker: Path, *paths: Path) -> dict:
     return report
 
 
-@pytest.mark.parametrize("color,depth", [("h264", "png"), ("jpeg", "raw"), ("raw", "png")])
+@pytest.mark.parametrize("color,depth", [("h264", "png"), ("jpeg", "raw"), ("raw", "png"), ("h264", "planes")])
 def test_every_channel_of_a_written_episode_parses(tmp_path: Path, checker: Path, color: str, depth: str) -> None:
     path = tmp_path / "episode_000000.mcap"
     w = EpisodeWriter(path, "cam0", color=ColorOutputConfig(codec=color), depth=DepthOutputConfig(codec=depth))

@@ -619,14 +619,18 @@ class FakeCamera:
                 k = math.ceil((start + length) * self.config.fps - 1e-6)
         return k
 
-    def _capture(self, renderer: SceneRenderer | RenderProcess, k: int) -> _Shot:
-        """Render frame ``k`` from the station: the arms at its capture time, the object as simulated so far."""
+    def _scene(self, k: int) -> tuple[SimGroundTruth, list[Mesh], Mesh, np.ndarray]:
+        """Frame ``k``'s ground truth, arm meshes, object mesh and object colour (RGB): the arms at its capture
+        time, the object as simulated so far."""
         st = self.station
         t_frame = k / self.config.fps
         st.advance_to(t_frame)
-        gt = st.ground_truth()
-        arms, obj = st.arm_meshes(t_frame), st.object_mesh()
-        color = np.asarray(st.object_config.color, dtype=np.float32)  # after set_object too
+        return (st.ground_truth(), st.arm_meshes(t_frame), st.object_mesh(),
+                np.asarray(st.object_config.color, dtype=np.float32))  # the colour after set_object too
+
+    def _capture(self, renderer: SceneRenderer | RenderProcess, k: int) -> _Shot:
+        """Render frame ``k`` from the station (see :meth:`_scene`)."""
+        gt, arms, obj, color = self._scene(k)
         if isinstance(renderer, RenderProcess):
             rgb, depth, mask = renderer.render(arms, obj, object_color=color, frame_index=k,
                                                with_mask=self.render_mask)
@@ -638,32 +642,42 @@ class FakeCamera:
 
     def _produce(self, renderer: RenderProcess) -> None:
         """The streaming camera's capture thread: every frame on its time into the queue (older ones fall out)."""
-        fps, depth = self.config.fps, self.config.queue_depth
+        fps = self.config.fps
         k = math.ceil(self.clock.now() * fps - 1e-6)
-        while True:
-            k = self._after_faults(k)
-            if self._stop_stream.wait(max(0.0, k / fps - self.clock.now())):
-                return
-            try:
-                shot = self._capture(renderer, k)
-            except DeviceError as e:
-                with self._cond:
-                    self._stream_error = e
-                    self._cond.notify_all()
-                return
+        in_flight: deque[tuple[int, SimGroundTruth]] = deque()  # submitted to the render process, in order
+        try:
+            while True:
+                k = self._after_faults(k)
+                if self._stop_stream.wait(max(0.0, k / fps - self.clock.now())):
+                    return
+                gt, arms, obj, color = self._scene(k)
+                renderer.submit(arms, obj, object_color=color, frame_index=k, with_mask=self.render_mask)
+                in_flight.append((k, gt))
+                # Starved of CPU, the simulation renders late, but every frame keeps its capture time (a device's
+                # capture does not wait for the host); only a world that cannot keep up at all skips ahead.
+                behind = math.floor(self.clock.now() * fps + 1e-6) - k
+                if behind > SIM_LAG_LIMIT_S * fps:
+                    log.warning("camera %s: the simulation is %.1f s behind real time (CPU): %d frames skipped",
+                                self.id, behind / fps, behind)
+                    k += behind
+                k += 1
+                # On time, a frame is collected at once; behind, the next frame's scene is computed here while
+                # the render process draws this one (two stages in parallel).
+                while in_flight and (len(in_flight) > 1 or k / fps > self.clock.now()):
+                    index, truth = in_flight.popleft()
+                    self._push(_Shot(index, *renderer.result(), truth))
+        except DeviceError as e:
             with self._cond:
-                self._queue.append(shot)
-                while len(self._queue) > depth:
-                    self._queue.popleft()
+                self._stream_error = e
                 self._cond.notify_all()
-            # Starved of CPU, the simulation renders late, but every frame keeps its capture time (a device's
-            # capture does not wait for the host); only a world that cannot keep up at all skips ahead.
-            behind = math.floor(self.clock.now() * fps + 1e-6) - k
-            if behind > SIM_LAG_LIMIT_S * fps:
-                log.warning("camera %s: the simulation is %.1f s behind real time (CPU): %d frames skipped",
-                            self.id, behind / fps, behind)
-                k += behind
-            k += 1
+
+    def _push(self, shot: _Shot) -> None:
+        """Queue a captured frame for :meth:`read`; beyond ``queue_depth`` the oldest falls out (a gap)."""
+        with self._cond:
+            self._queue.append(shot)
+            while len(self._queue) > self.config.queue_depth:
+                self._queue.popleft()
+            self._cond.notify_all()
 
     def _next_streamed(self, timeout: float) -> _Shot:
         """The oldest frame in the queue, waiting up to ``timeout`` s for one."""

@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import logging
 import os
+import queue
 import subprocess
 import sys
+import threading
 from collections.abc import Sequence
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -100,9 +102,19 @@ class RenderProcess:
         Arguments as :meth:`SceneRenderer.render`, with the object's colour (RGB 0-255) set first.
         timeout: s to wait for the frame once the child is up.
         """
+        self.submit(arms, obj, object_color=object_color, frame_index=frame_index, with_mask=with_mask)
+        return self.result(timeout)
+
+    def submit(
+        self, arms: Sequence[Mesh], obj: Mesh | None, *, object_color: np.ndarray, frame_index: int, with_mask: bool,
+    ) -> None:
+        """Send one frame to render without waiting for it; :meth:`result` returns the frames in order."""
         self.wait_ready()
         self._send(([tuple(m) for m in arms], obj, np.asarray(object_color, np.float32), int(frame_index),
                     bool(with_mask)))
+
+    def result(self, timeout: float = 10.0) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """The oldest submitted frame not yet returned: (color, depth, mask) as :meth:`render`."""
         _, color, depth, mask = self._reply(timeout)
         return color, depth, mask
 
@@ -145,13 +157,24 @@ def _serve(parent_pid: int) -> int:
         tx.send(("error", f"{type(e).__name__}: {e}"))
         return 1
     tx.send(("ready",))
+    requests: queue.Queue[Any] = queue.Queue()
+
+    def read_requests() -> None:  # drains stdin while a frame renders: the parent may send the next one then
+        try:
+            while True:
+                requests.put(rx.recv())
+        except (EOFError, OSError):
+            requests.put(None)
+
+    threading.Thread(target=read_requests, name="requests", daemon=True).start()
     while True:
-        while not rx.poll(PARENT_CHECK_S):
+        try:
+            request = requests.get(timeout=PARENT_CHECK_S)
+        except queue.Empty:
             if os.getppid() != parent_pid:
                 return 0
-        try:
-            request = rx.recv()
-        except EOFError:
+            continue
+        if request is None:
             return 0
         arms, obj, color, frame_index, with_mask = request
         try:
