@@ -161,7 +161,8 @@ class EpisodeWriter:
         self._image_cls = {SCHEMA_RAW: RawImage, SCHEMA_COMPRESSED: CompressedImage, SCHEMA_VIDEO: CompressedVideo,
                            SCHEMA_DEPTH: CompressedImage}  # planes depth: CompressedImage's fields, its own name
         color_cls = {"h264": CompressedVideo, "jpeg": CompressedImage, "raw": RawImage}[c.codec]
-        depth_cls = {"png": CompressedImage, "planes": CompressedImage, "raw": RawImage}[self.depth_config.codec]
+        depth_cls, depth_name = {"png": (CompressedImage, None), "planes": (CompressedImage, SCHEMA_DEPTH),
+                                 "raw": (RawImage, None)}[self.depth_config.codec]
 
         def proto(cls: Any, name: str | None = None) -> int:
             fds = build_file_descriptor_set(cls)
@@ -174,10 +175,7 @@ class EpisodeWriter:
 
         calib, tf, scene = proto(CameraCalibration), proto(FrameTransforms), proto(SceneUpdate)
         color_sid = proto(color_cls)
-        if self.depth_config.codec == "planes":
-            depth_sid = proto(CompressedImage, SCHEMA_DEPTH)
-        else:
-            depth_sid = color_sid if depth_cls is color_cls else proto(depth_cls)
+        depth_sid = color_sid if depth_cls is color_cls and depth_name is None else proto(depth_cls, depth_name)
         cam = f"/cam/{camera_id}"
         for topic, sid, enc in [
             (f"{cam}/color", color_sid, "protobuf"),

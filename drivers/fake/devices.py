@@ -697,6 +697,21 @@ class FakeCamera:
                 self._cond.wait(remaining)
             return self._queue.popleft()
 
+    def _next_index(self, timeout: float) -> int:
+        """The next unread frame's index, once its capture time has come (rendered by the reader)."""
+        fps = self.config.fps
+        now = self.clock.now()
+        if self._last_index is None:  # first frame: the one captured at or after now
+            k = math.ceil(now * fps - 1e-6)
+        else:  # the next unread frame, unless it fell out of the device queue meanwhile
+            k = max(self._last_index + 1, math.floor(now * fps + 1e-6) - self.config.queue_depth + 1)
+        k = self._after_faults(k)
+        if k / fps - now > timeout:
+            self.clock.sleep_until(now + timeout)
+            raise DeviceError(f"camera {self.id}: no frame within {timeout} s", recoverable=True)
+        self.clock.sleep_until(k / fps)
+        return k
+
     def read(self, timeout: float = 1.0) -> RGBDFrame:
         """The next unread frame on the 1/fps grid (waiting for its time), rendered from the station.
 
@@ -707,22 +722,10 @@ class FakeCamera:
         if renderer is None:
             raise DeviceError(f"camera {self.id}: not connected", recoverable=True)
         fps = self.config.fps
-        if self._stream is not None:
-            shot = self._next_streamed(timeout)
-        else:
-            now = self.clock.now()
-            if self._last_index is None:  # first frame: the one captured at or after now
-                k = math.ceil(now * fps - 1e-6)
-            else:  # the next unread frame, unless it fell out of the device queue meanwhile
-                k = max(self._last_index + 1, math.floor(now * fps + 1e-6) - self.config.queue_depth + 1)
-            k = self._after_faults(k)
-            if k / fps - now > timeout:
-                self.clock.sleep_until(now + timeout)
-                raise DeviceError(f"camera {self.id}: no frame within {timeout} s", recoverable=True)
-            self.clock.sleep_until(k / fps)
-            shot = None
+        shot = self._next_streamed(timeout) if self._stream is not None else None
+        k = shot.index if shot is not None else self._next_index(timeout)
         with self._lock:
-            self._last_index = k = shot.index if shot is not None else k
+            self._last_index = k
             if self._errors:
                 recoverable = self._errors.pop(0)
                 raise DeviceError(f"camera {self.id}: injected frame error", recoverable=recoverable)
