@@ -413,7 +413,8 @@ class FinalTracker:
         with open(self.out_dir / "final.log", "ab") as logf:
             try:
                 proc = subprocess.Popen([sys.executable, "-m", "orchestrator.final"], stdin=subprocess.PIPE,
-                                        stdout=subprocess.PIPE, stderr=logf, preexec_fn=_lower_priority)
+                                        stdout=subprocess.PIPE, stderr=logf, preexec_fn=_lower_priority,
+                                        start_new_session=True)  # signals reach the session, which stops this
             except OSError as e:
                 return {"status": "error", "reason": f"could not start: {e}", "episodes": [f.name for f in job.files]}
             with self._lock:

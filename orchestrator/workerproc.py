@@ -57,6 +57,7 @@ def start_worker(config: Config, out_dir: Path, extra_args: list[str] | None = N
     cmd += extra_args or []
     with open(log_path, "ab") as logf:
         proc = subprocess.Popen(
-            cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, preexec_fn=_lower_priority
+            cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, preexec_fn=_lower_priority,
+            start_new_session=True,  # a terminal's Ctrl-C reaches the session only, which stops the worker itself
         )
     return WorkerProcess(proc, log_path)

@@ -113,3 +113,42 @@ def test_offline_track_writes_reference_npz(demo_10s_track: tuple[Path, dict]) -
     ref = np.load(out / "3d_keypoints.npz")
     assert ref["full"].shape == (300, 20, 3) and ref["edge_connection"].shape == (19, 2)
     assert 5.0 < np.nanmedian(ref["reference_lengths"]) < 60.0  # millimetres
+
+
+def test_ctrl_c_stops_the_session_and_nothing_else_first(tmp_path: Path, port: int) -> None:
+    """Ctrl-C in a terminal signals the whole process group: the session stops after its current frame and its
+    children (tracking worker, the fake camera's render process) are stopped by it, not by the signal."""
+    import os
+    import signal
+    import time
+
+    from tests.conftest import mock_yaml
+
+    out = tmp_path / "demo"
+    cfg = mock_yaml(tmp_path / "mock.yaml", {"tracking.live_init.enabled": False, "station.camera.width": 320,
+                                             "station.camera.height": 240})
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "orchestrator.cli", "demo", "--seconds", "30", "--out", str(out), "--port", str(port),
+         "--object", "rope", "--config", str(cfg)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None and not list(out.glob("episode_*.mcap.active")):
+            time.sleep(0.2)
+        assert proc.poll() is None, "the demo ended before recording"
+        time.sleep(2.0)  # mid-episode, the worker tracking
+        os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert "SIGINT: stopping" in stderr, stderr[-3000:]
+    assert "Traceback" not in stderr and "camera read failed" not in stderr, stderr[-3000:]
+    assert "frames dropped   : 0" in stdout, stdout
+    events = [json.loads(line)["event"] for line in (out / "events.jsonl").read_text().splitlines()]
+    assert "incident" not in events, (out / "events.jsonl").read_text()  # no worker restart, no device fault
+    episodes = list(out.glob("episode_*.mcap"))
+    assert len(episodes) == 1 and not list(out.glob("*.active"))
+    assert read_episode_metadata(episodes[0])["complete"] is False

@@ -37,7 +37,7 @@ from tdcommon.types import CameraIntrinsics, GripperState, JointMotion, JointSta
 PHYSICS_RATE = 300  # Hz; physics substeps on a fixed grid of absolute times (SimObject.max_substep)
 SUBSTEPS_PER_CHUNK = 1  # TCP poses from FK at every substep: results independent of the query pattern
 START_TOLERANCE = 0.02  # rad; a motion must start this close to the arm's current joints
-SIM_LAG_LIMIT_S = 1.0  # s; a streaming fake camera this far behind real time skips frames
+SIM_LAG_LIMIT_S = 3.0  # s; a streaming fake camera this far behind real time skips frames
 log = logging.getLogger(__name__)
 
 

@@ -50,6 +50,7 @@ class RenderProcess:
         self._proc: subprocess.Popen[bytes] | None = subprocess.Popen(
             [sys.executable, "-m", "drivers.fake.render_process", str(os.getpid())],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, close_fds=True,
+            start_new_session=True,  # a terminal's Ctrl-C (or a signal to the group) leaves the camera running
         )
         assert self._proc.stdin is not None and self._proc.stdout is not None
         self._tx = Connection(os.dup(self._proc.stdin.fileno()), readable=False)
@@ -180,10 +181,13 @@ def _serve(parent_pid: int) -> int:
         try:
             renderer.object_color = color
             out = renderer.render(arms, obj, frame_index=frame_index, with_mask=with_mask)
+            reply: tuple[Any, ...] = ("ok", out.color, out.depth, out.mask)
         except Exception as e:  # noqa: BLE001 - reported to the parent, which raises it as a device fault
-            tx.send(("error", f"{type(e).__name__}: {e}"))
-            continue
-        tx.send(("ok", out.color, out.depth, out.mask))
+            reply = ("error", f"{type(e).__name__}: {e}")
+        try:
+            tx.send(reply)
+        except OSError:  # the parent closed the camera while this frame rendered: nobody is waiting for it
+            return 0
 
 
 if __name__ == "__main__":
