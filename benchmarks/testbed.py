@@ -1,7 +1,7 @@
 """``trackdeform track`` on the independent test bed (``../shared/testbed``): generate, track, score, one table.
 
 Usage: .venv/bin/python benchmarks/testbed.py [--cache DIR] [--testbed DIR] [--testbed-python PY]
-       [--set dev|variants|all] [--only NAME[,NAME]] [--list] [--json] [--cores N]
+       [--set dev|variants|all] [--only NAME[,NAME]] [--list] [--json] [--cores N] [--ablations]
 
 The test bed is a second simulated station (MuJoCo physics, its own renderer, stereo depth noise) with
 its own scorer; see its README. This script
@@ -23,6 +23,12 @@ frame (start-up, reading the clip, both passes, writing: what a lab waits for), 
 (user + system, all its threads) the command used per frame, which a busy shared machine inflates less than
 the wall time. ``--cores N`` runs each ``track`` command on N cores of this process's affinity mask (1: the
 issue's one-core figures).
+
+``--ablations`` tracks every sequence once per variant of the paper's Table II (``trackdeform eval
+ablations``' variants: the full method, without anchors, without edge-length projection, without cloud
+projection; each a copy of configs/mock.yaml with one switch off) and adds the mean over the sequences of
+each variant: the scorer's ground-truth columns (object, anchors, coverage) beside the paper's Abs and CD,
+which ``trackdeform eval`` cannot show on sequences without ground truth.
 
 The default set (``--set all``) is the five-sequence development set plus the variants below (camera
 from the side and from above, rope lengths 0.8-1.0 m, radii 4-7 mm, colours, the three speeds, other
@@ -139,13 +145,14 @@ def _children_cpu_s() -> float:
     return ru.ru_utime + ru.ru_stime
 
 
-def track(seq: Path, job: dict[str, Any], out: Path, cores: int | None = None) -> dict[str, Any]:
-    """Run ``trackdeform track`` on one sequence (on ``cores`` cores of ours, or all); its metrics plus the
-    command's wall and CPU time per frame."""
+def track(seq: Path, job: dict[str, Any], out: Path, cores: int | None = None,
+          config: Path | None = None) -> dict[str, Any]:
+    """Run ``trackdeform track`` on one sequence (on ``cores`` cores of ours, or all; tracking parameters from
+    ``config``, or the default); its metrics plus the command's wall and CPU time per frame."""
     out.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(":")}
     cmd = [sys.executable, "-m", "orchestrator.cli", "track", str(seq), "--out", str(out),
-           "--category", CATEGORY[job["obj"]], "--json"]
+           "--category", CATEGORY[job["obj"]], "--json"] + (["--config", str(config)] if config else [])
     mask = sorted(os.sched_getaffinity(0))[:cores] if cores else None
 
     def pin() -> None:  # in the child, before it runs the command
@@ -172,6 +179,44 @@ def score(py: Path, testbed: Path, pred: Path, seq: Path) -> dict[str, Any]:
     if not r.stdout.strip():
         return {"error": (r.stderr.strip().splitlines() or ["score failed"])[-1]}
     return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def ablation_configs(folder: Path) -> dict[str, Path | None]:
+    """Variant name -> config file with that ablation switch off (None: the default config, the full method)."""
+    import yaml
+
+    if sys.path[0] != str(REPO):  # the project before this folder (benchmarks/tracking.py is not the package)
+        sys.path.insert(0, str(REPO))
+    from orchestrator.cli_eval import ABLATIONS
+
+    folder.mkdir(parents=True, exist_ok=True)
+    base = yaml.safe_load((REPO / "configs" / "mock.yaml").read_text())
+    out: dict[str, Path | None] = {}
+    for name, off in ABLATIONS.items():
+        if not off:
+            out[name] = None
+            continue
+        data = json.loads(json.dumps(base))
+        data.setdefault("tracking", {}).update(off)
+        path = folder / f"{name.replace('/', '').replace(' ', '_')}.yaml"
+        path.write_text(yaml.safe_dump(data, sort_keys=False))
+        out[name] = path
+    return out
+
+
+def means(rows: list[tuple[str, dict[str, Any]]], variants: list[str]) -> list[tuple[str, dict[str, Any]]]:
+    """One row per variant: the mean of every column over the sequences it scored (rows named 'seq · variant')."""
+    out = []
+    for v in variants:
+        got = [r for n, r in rows if n.endswith(f" · {v}") and "error" not in r]
+        if not got:
+            continue
+        avg = {}
+        for _, key, _, _ in COLUMNS:
+            vals = [float(r[key]) for r in got if r.get(key) is not None]
+            avg[key] = sum(vals) / len(vals) if vals else None
+        out.append((f"mean of {len(got)} · {v}", avg))
+    return out
 
 
 def table(rows: list[tuple[str, dict[str, Any]]]) -> str:
@@ -201,6 +246,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--list", action="store_true", help="list the sequences and exit")
     ap.add_argument("--json", action="store_true", help="also print every row's figures as one JSON line")
     ap.add_argument("--cores", type=int, help="run each track command on this many of our cores (default: all)")
+    ap.add_argument("--ablations", action="store_true",
+                    help="track each sequence once per Table II variant (full, w/o anchors / edge / cloud projection)")
     a = ap.parse_args(argv)
     jobs = SETS[a.set] if not a.only else SETS["all"]
     if a.only:
@@ -224,17 +271,22 @@ def main(argv: list[str] | None = None) -> int:
     py = find_python(a.testbed_python, cache, testbed)
     seqs = cache / "sequences"
     failed = generate(py, testbed, jobs, seqs)
+    variants = ablation_configs(cache / "ablations") if a.ablations else {"": None}
     rows: list[tuple[str, dict[str, Any]]] = []
     for j in jobs:
         name = j["name"]
-        if name in failed:
-            rows.append((name, {"error": failed[name]}))
-            continue
-        out = cache / "tracks" / name
-        print(f"tracking {name} ...", file=sys.stderr, flush=True)
-        m = track(seqs / name, j, out, a.cores)
-        r = m if "error" in m else {**score(py, testbed, out / "3d_keypoints.npz", seqs / name), **m}
-        rows.append((name, r))
+        for variant, config in variants.items():
+            label = f"{name} · {variant}" if variant else name
+            if name in failed:
+                rows.append((label, {"error": failed[name]}))
+                continue
+            out = cache / "tracks" / (variant.replace("/", "").replace(" ", "_") if variant else "") / name
+            print(f"tracking {label} ...", file=sys.stderr, flush=True)
+            m = track(seqs / name, j, out, a.cores, config)
+            r = m if "error" in m else {**score(py, testbed, out / "3d_keypoints.npz", seqs / name), **m}
+            rows.append((label, r))
+    if a.ablations:
+        rows += means(rows, list(variants))
     print(table(rows))
     if a.json:
         print(json.dumps({n: {k: r.get(k) for k in ("error", *(c[1] for c in COLUMNS))} for n, r in rows}))

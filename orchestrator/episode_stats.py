@@ -11,13 +11,42 @@ from __future__ import annotations
 import json
 import os
 import sys
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 GAP_FACTOR = 1.5  # an interval longer than this many nominal periods is a gap
+
+
+def gt_errors_mm(frames: Sequence[tuple[np.ndarray, dict[str, Any]]]) -> list[float]:
+    """Ground-truth error (mm, ``tracking.metrics.surface_error_mm``) of each (keypoints (N, 3) m, recorded
+    ``/ground_truth/keypoints`` message) pair; nan without keypoints or true samples. Frames whose keypoints and
+    samples have the same shapes go through ``surface_errors_mm`` together (one batch, not a loop of frames)."""
+    from tdcommon.wire import ground_truth_from_json
+    from tracking.metrics import surface_errors_mm
+
+    out = [float("nan")] * len(frames)
+    groups: dict[tuple, list[tuple[int, np.ndarray, np.ndarray]]] = {}
+    for i, (X, d) in enumerate(frames):
+        g = ground_truth_from_json(d)
+        if len(g.centreline) and len(X):
+            key = (X.shape, g.centreline.shape, g.radius, g.category != "cloth")
+            groups.setdefault(key, []).append((i, X, g.centreline))
+    for (_, _, radius, polyline), items in groups.items():
+        e = surface_errors_mm(np.stack([x for _, x, _ in items]), np.stack([c for _, _, c in items]), radius,
+                              polyline=polyline)
+        for (i, _, _), v in zip(items, e, strict=True):
+            out[i] = float(v)
+    return out
+
+
+def message_gt_errors_mm(pairs: Sequence[tuple[dict[str, Any], dict[str, Any]]]) -> list[float]:
+    """:func:`gt_errors_mm` of (``/keypoints`` message, ground-truth message) pairs (an episode digest's)."""
+    from tdcommon.wire import points_from_json
+
+    return gt_errors_mm([(points_from_json(k.get("keypoints", [])), g) for k, g in pairs])
 
 
 def expand_inputs(paths: Iterable[str]) -> list[Path]:

@@ -44,6 +44,7 @@ import orjson
 from mcap.writer import CompressionType, Writer
 
 from orchestrator.config import ColorOutputConfig, DepthOutputConfig
+from orchestrator.episode_stats import message_gt_errors_mm
 from orchestrator.fsutil import fsync_dir
 from tdcommon.types import RGBDFrame
 from tdcommon.wire import ground_truth_to_json
@@ -148,7 +149,8 @@ class EpisodeWriter:
             self._w.add_metadata(OPEN_METADATA, _json_values(metadata))
         self._channels: dict[str, int] = {}
         self._seq: dict[str, int] = {}
-        self._digest = DigestWriter()  # the small JSON channels, written beside the file once it is final
+        # the small JSON channels (ground truth as errors), written beside the file once it is final
+        self._digest = DigestWriter(message_gt_errors_mm)
         self.camera_id = camera_id
         self.n_frames = 0
         self._last_tf = -np.inf
@@ -204,7 +206,7 @@ class EpisodeWriter:
     def _add_json(self, topic: str, obj: dict[str, Any], t: float) -> None:
         data = _json_bytes(obj)
         self._add(topic, data, t)
-        self._digest.add(topic, _ns(t), data.decode())
+        self._digest.add(topic, _ns(t), data.decode(), obj)
 
     def _image_message(self, img: EncodedImage, ts: Any) -> bytes:
         cls = self._image_cls[img.schema]

@@ -119,34 +119,28 @@ def _camera_topics(topics: set[str]) -> tuple[str, str]:
 
 def _gt_errors(frames: list[tuple[int, np.ndarray, dict[str, Any]]], out: list[float]) -> None:
     """GT error (mm) of recorded keypoints: ``out[i]`` for every (i, keypoints (N, 3) m, ground-truth JSON)
-    in ``frames``, computed in batches of frames whose keypoints and samples have the same shapes."""
-    from tdcommon.wire import ground_truth_from_json
-    from tracking.metrics import surface_errors_mm
+    in ``frames`` (:func:`orchestrator.episode_stats.gt_errors_mm`)."""
+    from orchestrator.episode_stats import gt_errors_mm
 
-    groups: dict[tuple, list[tuple[int, np.ndarray, np.ndarray]]] = {}
-    for i, X, d in frames:
-        g = ground_truth_from_json(d)
-        if len(g.centreline):
-            key = (X.shape, g.centreline.shape, g.radius, g.category != "cloth")
-            groups.setdefault(key, []).append((i, X, g.centreline))
-    for (_, _, radius, polyline), items in groups.items():
-        e = surface_errors_mm(np.stack([x for _, x, _ in items]), np.stack([c for _, _, c in items]), radius,
-                              polyline=polyline)
-        for (i, _, _), v in zip(items, e, strict=True):
-            out[i] = float(v)
+    for (i, _, _), v in zip(frames, gt_errors_mm([(X, d) for _, X, d in frames]), strict=True):
+        out[i] = v
 
 
-def _small_channels(path: Path) -> Iterator[tuple[str, int, dict[str, Any]]]:
-    """(topic, log time ns, JSON) of an episode's frame info, ``/keypoints`` and ground truth: from its digest
-    (``tdrecord.digest``, no image chunk decompressed) when it has one, else from the MCAP file."""
-    from mcap.reader import make_reader
-
+def _small_channels(path: Path) -> tuple[Iterator[tuple[str, int, dict[str, Any]]], dict[int, float] | None]:
+    """(topic, log time ns, JSON) of an episode's frame info, ``/keypoints`` and ground truth, and the keypoints'
+    ground-truth errors by frame number when they were computed already: from its digest (``tdrecord.digest``,
+    no image chunk decompressed) when it has one, else (errors None) from the MCAP file."""
     from tdrecord.digest import read_digest
 
     digest = read_digest(path)
     if digest is not None:
-        yield from digest
-        return
+        return iter(digest.messages), digest.gt_error_mm
+    return _mcap_small_channels(path), None
+
+
+def _mcap_small_channels(path: Path) -> Iterator[tuple[str, int, dict[str, Any]]]:
+    from mcap.reader import make_reader
+
     with open(path, "rb") as f:
         reader = make_reader(f)
         summary = reader.get_summary()
@@ -166,7 +160,8 @@ def read_recorded(run: RunData) -> None:
         kps: dict[int, dict[str, Any]] = {}
         gts: dict[int, dict[str, Any]] = {}
         key = -1
-        for topic, log_time, d in _small_channels(path):
+        messages, known_gt = _small_channels(path)
+        for topic, log_time, d in messages:
             fn = int(d.get("frame_number", -1))
             if topic.endswith("/frame_info"):
                 run.frames += 1
@@ -193,9 +188,12 @@ def read_recorded(run: RunData) -> None:
             run.t.append(float(d.get("stamp", 0.0)) - (t0 or 0.0))
             run.abs_mm.append(float(d["abs_mm"]))
             run.cd_mm.append(float(d["cd_mm"]))
-            if fn in gts:
-                pending_gt.append((len(run.gt_mm), X, gts[fn]))
-            run.gt_mm.append(float("nan"))
+            if known_gt is not None:
+                run.gt_mm.append(known_gt.get(fn, float("nan")))
+            else:
+                if fn in gts:
+                    pending_gt.append((len(run.gt_mm), X, gts[fn]))
+                run.gt_mm.append(float("nan"))
             run.keypoints.append(X)
             run.frame_numbers.append(fn)
         _gt_errors(pending_gt, run.gt_mm)  # per episode: the ground truth of one file at a time is kept
@@ -354,7 +352,7 @@ class Fig5:
             ax.relim()
             ax.autoscale_view()
         self.fig.suptitle(run.label, fontsize=9)
-        self.fig.savefig(path, dpi=90)
+        self.fig.savefig(path, dpi=90, pil_kwargs={"compress_level": 1})  # level 6: half of each save
         if self.fig.get_layout_engine() is not None:  # laid out once: the layout was half of every later save
             self.fig.set_layout_engine("none")
 

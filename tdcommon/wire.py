@@ -30,6 +30,8 @@ from __future__ import annotations
 import json
 import struct
 from dataclasses import dataclass
+from itertools import chain
+from operator import itemgetter
 from typing import Any
 
 import numpy as np
@@ -103,10 +105,15 @@ def edges_to_json(edges: Any) -> list[dict[str, int]]:
     return [{"i": i, "j": j} for i, j in np.asarray(edges, dtype=np.int64).reshape(-1, 2).tolist()]
 
 
+_XYZ = itemgetter("x", "y", "z")
+
+
 def points_from_json(value: Any) -> np.ndarray:
-    """[{"x", "y", "z"}, ...] or [[x, y, z], ...] -> (N, 3) float64."""
-    if value and isinstance(value[0], dict):
-        return np.array([[p["x"], p["y"], p["z"]] for p in value], dtype=np.float64).reshape(-1, 3)
+    """[{"x", "y", "z"}, ...], [[x, y, z], ...] or an (N, 3) array -> (N, 3) float64."""
+    if isinstance(value, np.ndarray):
+        return np.asarray(value, dtype=np.float64).reshape(-1, 3)
+    if value and isinstance(value[0], dict):  # a C-level walk: ground truth has hundreds of points a frame
+        return np.fromiter(chain.from_iterable(map(_XYZ, value)), np.float64, count=3 * len(value)).reshape(-1, 3)
     return np.asarray(value if value is not None else [], dtype=np.float64).reshape(-1, 3)
 
 

@@ -39,9 +39,10 @@ def test_the_digest_holds_the_small_channels_and_the_report_reads_the_same(tmp_p
     assert [digest_path(e).name for e in episodes] == sorted(p.name for p in session.glob(f"*{DIGEST_SUFFIX}"))
     for e in episodes:
         got = read_digest(e)
-        assert got is not None
-        assert sorted(got, key=lambda x: (x[1], x[0])) == sorted(_mcap_small_channels(e), key=lambda x: (x[1], x[0]))
-        assert {t for t, _, _ in got} == {"/cam/cam0/frame_info", "/keypoints"}
+        assert got is not None and got.gt_error_mm == {}  # no ground truth in these episodes
+        assert sorted(got.messages, key=lambda x: (x[1], x[0])) == sorted(_mcap_small_channels(e),
+                                                                          key=lambda x: (x[1], x[0]))
+        assert {t for t, _, _ in got.messages} == {"/cam/cam0/frame_info", "/keypoints"}
     with_digest = _fields(session)
 
     plain = tmp_path / "plain"  # the same episodes without their digests: read from the MCAP files
@@ -97,3 +98,47 @@ def test_a_new_episode_of_the_same_name_drops_a_stale_digest(tmp_path: Path) -> 
     w = EpisodeWriter(path, "cam0")
     assert not digest_path(path).exists()
     w.abort()
+
+
+def test_ground_truth_goes_into_the_digest_as_the_errors_the_report_would_compute(tmp_path: Path) -> None:
+    """A mock episode's digest holds each keypoint set's ground-truth error instead of the dense true samples;
+    the report's GT figures from it equal those computed from the MCAP file's ground-truth messages."""
+    from orchestrator.recorder import EpisodeWriter
+    from tdcommon.types import CameraIntrinsics, GroundTruth, RGBDFrame
+    from tests.test_report import T_CAM, _kp_message
+
+    intr = CameraIntrinsics.from_fov(160, 120, 69.0)
+    s = np.linspace(-0.2, 0.2, 300)
+    session = tmp_path / "s"
+    session.mkdir()
+    for e in range(2):
+        w = EpisodeWriter(session / f"episode_{e:06d}.mcap", "cam0")
+        for n in range(e * 8, e * 8 + 8):
+            centre = np.c_[s, 0.02 * np.sin(8 * s + 0.3 * n), np.zeros_like(s)]
+            gt = GroundTruth(centre[::30], np.c_[np.arange(9), np.arange(1, 10)], centre, 0.004, np.array([0, 9]),
+                             "dlo")
+            w.write_frame(RGBDFrame(np.zeros((120, 160, 3), np.uint8), np.full((120, 160), 1000, np.uint16), 0.001,
+                                    intr, 10.0 + n / 30.0, 10.002 + n / 30.0, n, ground_truth=gt), T_CAM)
+            X = centre[::60] + [0.0, 0.0, 0.001 * n]  # off the centreline by n mm
+            if n != 3:  # a frame without keypoints
+                w.write_keypoints(_kp_message(n, X, 1.0, 2.0), 10.0 + n / 30.0)
+        w.close({"object": "rope", "category": "dlo", "program": "p", "speed": "fast", "repeat": 0, "run_index": 0,
+                 "attempt": 1, "plan_pass": 0, "episode_index": e, "complete": True, "fault": False})
+    episodes = sorted(session.glob("episode_*.mcap"))
+    d = read_digest(episodes[1])
+    assert d is not None and sorted(d.gt_error_mm) == list(range(8, 16))
+    assert "/ground_truth/keypoints" not in {t for t, _, _ in d.messages}
+    assert "/ground_truth/keypoints" in {t for t, _, _ in _mcap_small_channels(episodes[1])}
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    for e in episodes:
+        shutil.copy(e, plain / e.name)
+    runs = {}
+    for folder in (session, plain):
+        (run,) = group_runs(sorted(folder.glob("episode_*.mcap")))
+        read_recorded(run)
+        runs[folder] = run
+    a, b = np.asarray(runs[session].gt_mm), np.asarray(runs[plain].gt_mm)
+    assert len(a) == 15 and np.isfinite(a).all()
+    np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
+    assert a[0] < 0.5 and a[-1] > 10.0  # the keypoints drift off the centreline, frame by frame
