@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -61,7 +62,7 @@ def main() -> None:
     for label, track, hide, jobs in cases:
         if hide:  # the episodes' small channels read from the MCAP files (every chunk decompressed)
             for p in digests:
-                p.rename(aside / p.name)
+                shutil.move(p, aside / p.name)  # another file system, e.g. a session on a tmpfs
         try:
             t0, c0 = time.monotonic(), time.process_time()
             k0 = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -73,7 +74,7 @@ def main() -> None:
         finally:
             for p in digests:
                 if (aside / p.name).exists():
-                    (aside / p.name).rename(p)
+                    shutil.move(aside / p.name, p)
         rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         child = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
         per = max(1, episodes)
