@@ -181,6 +181,11 @@ def score(py: Path, testbed: Path, pred: Path, seq: Path) -> dict[str, Any]:
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
+def slug(variant: str) -> str:
+    """A variant's name as a file or folder name ("w/o anchors" -> "wo_anchors")."""
+    return variant.replace("/", "").replace(" ", "_")
+
+
 def ablation_configs(folder: Path) -> dict[str, Path | None]:
     """Variant name -> config file with that ablation switch off (None: the default config, the full method)."""
     import yaml
@@ -198,7 +203,7 @@ def ablation_configs(folder: Path) -> dict[str, Path | None]:
             continue
         data = json.loads(json.dumps(base))
         data.setdefault("tracking", {}).update(off)
-        path = folder / f"{name.replace('/', '').replace(' ', '_')}.yaml"
+        path = folder / f"{slug(name)}.yaml"
         path.write_text(yaml.safe_dump(data, sort_keys=False))
         out[name] = path
     return out
@@ -280,7 +285,7 @@ def main(argv: list[str] | None = None) -> int:
             if name in failed:
                 rows.append((label, {"error": failed[name]}))
                 continue
-            out = cache / "tracks" / (variant.replace("/", "").replace(" ", "_") if variant else "") / name
+            out = cache / "tracks" / slug(variant) / name
             print(f"tracking {label} ...", file=sys.stderr, flush=True)
             m = track(seqs / name, j, out, a.cores, config)
             r = m if "error" in m else {**score(py, testbed, out / "3d_keypoints.npz", seqs / name), **m}
