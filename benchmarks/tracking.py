@@ -294,8 +294,8 @@ def init_consistency(
         pipe.set_reference(d[0])
         arm = pipe.arm_mask(d[-1], V, F)
         seg = pipe.segment_initial(np.stack(d[:-1]), d[-1], arm)
-        seg = pipe.reach_grippers(d[-1], seg, arm, tcp[np.asarray(closed, bool)])
-        cloud = pipe.refine(seq.frames[-1].depth.astype(np.float32) * np.float32(1e-3), seg, arm, np.stack(d[:-1]))
+        _, cloud = pipe.initial_cloud(np.stack(d[:-1]), d[-1], seg, arm, tcp, closed,
+                                      seq.frames[-1].depth.astype(np.float32) * np.float32(1e-3))
         try:
             ini, _ = pipe.tracker.initialise(cloud, tcp=tcp, kind=pipe.kind, gripper_closed=closed)
         except InitialisationError:

@@ -366,3 +366,27 @@ def test_initial_rope_cloud_is_grown_up_to_the_grippers_holding_it(cam):
     assert cKDTree(out.points).query(c[[0, -1]])[0].max() < P.grasp_gate_m
     assert (cKDTree(c).query(out.points)[0] < r + 0.005).all()  # rope only
     assert pipe.reach_grippers(d, seg, None, np.array([[0.0, 0.6, 0.3]])) is seg  # nothing leads there
+
+
+def test_grown_segmentation_with_the_table_plane_takes_the_still_part_of_a_hanging_sheet(cam):
+    """Only the upper half of a sheet hanging in front of the table moved: growth over changed pixels keeps
+    that half; with the reference's table plane it also crosses the still lower half, and never the table."""
+    from tracking.segmentation import support_plane
+
+    K, T = cam
+    table = S.render_depth([S.table_mesh()], K, T, (H, W))
+    r0, rm, r1, c0, c1 = 120, 200, 280, 220, 420
+    frame = table.copy()
+    frame[r0:r1, c0:c1] = 0.6
+    ref = frame.copy()
+    ref[r0:rm, c0:c1] = 0.65  # the upper half was farther back in the reference
+    sheet = np.zeros((H, W), bool)
+    sheet[r0:r1, c0:c1] = True
+    pts, _ = depth_to_points(frame, K, T, sheet)
+    assert pts[:, 2].min() > 0.05  # the sheet hangs above the table
+    plain = segment_by_difference(ref[None], frame, K, T, P, grow=True)
+    full = segment_by_difference(ref[None], frame, K, T, P, grow=True, support=support_plane(table, K, T, P))
+    rows = lambda seg: project_points(seg.points, K, T)[0][:, 1]  # noqa: E731
+    assert rows(plain).max() < rm + 3  # the moved half only
+    assert rows(full).max() > r1 - 4 and rows(full).min() < r0 + 3  # the whole sheet
+    assert (project_points(full.points, K, T)[1] < 0.6 + 0.01).all()  # no table point

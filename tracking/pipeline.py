@@ -249,6 +249,8 @@ class LivePipeline:
         over the changed pixels depth-continuous with it (``segment_by_difference(grow=True)``): a
         cloth pulled back lies behind its old positions and differencing alone misses most of it.
         A 1D object gets its thin parts that did not move (``grow_attached_tubes``): a hanging end.
+        The parts of a 2D object that did not move are added once it is initialised on (``_try_initialise``):
+        before the object moved, noise alone would seed the whole surface.
         """
         p = self.seg_params
         if self.kind == "2d":
@@ -292,6 +294,24 @@ class LivePipeline:
         now = cKDTree(out.points).query(held)[0] <= p.grasp_gate_m
         return out if now.sum() > reached.sum() else seg
 
+    def initial_cloud(
+        self, refs: np.ndarray, depth: np.ndarray, seg: Segmentation, arm: np.ndarray | None,
+        tcp: np.ndarray | None, closed: np.ndarray | None, full: np.ndarray,
+    ) -> tuple[Segmentation, np.ndarray]:
+        """The cloud (N, 3) m to initialise on, from the initial segmentation ``seg`` of the decimated depth
+        (h, w) m against refs (R, h, w) m, once the object moved enough: a grown (2D) segmentation is
+        completed with what did not move but stands above the table (a cloth's still hem: ``segment_by_
+        difference(support=...)``), a 1D one grown to the closed grippers' TCPs (tcp (G, 3) m, closed (G,)
+        bool: ``reach_grippers``), then re-lifted from the full-resolution depth (H, W) m (``refine``).
+        Returns the (completed) decimated segmentation and the cloud."""
+        if seg.grown:
+            seg = segment_by_difference(refs, depth, self.K_seg, self.T, self.seg_params, arm, grow=True,
+                                        support=self._support)
+        if tcp is not None:
+            held = np.asarray(tcp, np.float64).reshape(-1, 3)
+            seg = self.reach_grippers(depth, seg, arm, held if closed is None else held[np.asarray(closed, bool)])
+        return seg, self.refine(full, seg, arm, refs)
+
     def refine(self, depth: np.ndarray, seg: Segmentation, arm: np.ndarray | None, refs: np.ndarray) -> np.ndarray:
         """The initial object cloud (N, 3) m re-lifted from the full-resolution depth (H, W) m, a grown
         one re-grown against the decimated references refs (R, h, w) m, a 1D one's thin parts above
@@ -301,7 +321,7 @@ class LivePipeline:
             return seg.points
         return refine_object_cloud(
             np.asarray(depth, np.float32), seg.points, self.K, self.T, self.params, arm,
-            refs=refs if seg.grown else None, support=None if seg.grown else self._support,
+            refs=refs if seg.grown else None, support=self._support,
         )
 
     def resume(
@@ -316,11 +336,10 @@ class LivePipeline:
         self._d0 = self.background
 
     def set_reference(self, depth: np.ndarray) -> None:
-        """Make a decimated depth (h, w) m the reference D0 (and find the table plane in it: a 1D
+        """Make a decimated depth (h, w) m the reference D0 (and find the table plane in it: an
         object's parts that did not move stand above it); ``process`` does this on its first frame."""
         self._d0 = depth
-        if self.kind != "2d":  # only a 1D object's initial segmentation uses it
-            self._support = support_plane(depth, self.K_seg, self.T, self.seg_params)
+        self._support = support_plane(depth, self.K_seg, self.T, self.seg_params)
 
     # ---------------------------------------------------------------- internals
     def _empty(self, status: str, n_points: int = 0, note: str = "") -> PipelineOutput:
@@ -357,10 +376,7 @@ class LivePipeline:
         n = len(seg.points)
         if self._growing(n) or n < self.min_init_points:
             return self._empty("waiting", n, "waiting for the arms to move the object")
-        if tcp is not None:
-            held = np.asarray(tcp, np.float64).reshape(-1, 3)
-            seg = self.reach_grippers(depth, seg, arm, held if closed is None else held[np.asarray(closed, bool)])
-        cloud = self.refine(full, seg, arm, refs)
+        seg, cloud = self.initial_cloud(refs, depth, seg, arm, tcp, closed, full)
         try:
             ini, res = self.tracker.initialise(cloud, tcp=tcp, kind=self.kind, gripper_closed=closed)
         except InitialisationError as e:

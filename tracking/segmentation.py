@@ -340,6 +340,23 @@ def grow_depth_region(depth: np.ndarray, seeds: np.ndarray, candidate: np.ndarra
     return keep[lab]
 
 
+def above_support(
+    depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, support: tuple[np.ndarray, float] | None,
+    min_height_m: float,
+) -> np.ndarray:
+    """(H, W) bool: pixels of depth (H, W) m whose 3D point stands at least min_height_m above the support
+    plane (unit normal (3,) world, offset m, camera side positive: ``support_plane``); all False without one."""
+    if support is None:
+        return np.zeros(depth.shape, bool)
+    n, o = support
+    a = T_world_cam[:3, :3].T @ n  # the normal in the camera frame
+    H, W = depth.shape
+    u = ((np.arange(W, dtype=np.float32) - np.float32(K[0, 2])) / np.float32(K[0, 0])) * np.float32(a[0])
+    v = ((np.arange(H, dtype=np.float32) - np.float32(K[1, 2])) / np.float32(K[1, 1])) * np.float32(a[1])
+    height = depth * (v[:, None] + u[None, :] + np.float32(a[2])) + np.float32(T_world_cam[:3, 3] @ n - o)
+    return (depth > 0) & (height >= np.float32(min_height_m))
+
+
 def segment_by_difference(
     depth_ref: np.ndarray,
     depth1: np.ndarray,
@@ -348,6 +365,7 @@ def segment_by_difference(
     params: TrackingParams,
     arm_mask: np.ndarray | None = None,
     grow: bool = False,
+    support: tuple[np.ndarray, float] | None = None,
 ) -> Segmentation:
     """Initial segmentation: the object in depth1 (H, W) float m against reference depth(s) m.
 
@@ -363,6 +381,10 @@ def segment_by_difference(
     background behind the object's outline is cut off by the depth step there. An object resting
     on a surface would leak into the surface revealed where it stood: growth suits an object
     held in the air (a cloth lifted by its corners), not a rope on a table.
+    support: the reference's table plane (``support_plane``): growth also crosses the pixels that did
+    not change but stand ``attach_min_height_m`` above it (the part of a hanging cloth that did not
+    move yet: its lower hem, a strip that differencing misses and whose loss folds the grid's free
+    side); the table itself, which a cloth may touch, is never grown into.
     """
     appeared, vanished = difference_masks(depth_ref, depth1, params)
     if arm_mask is not None:
@@ -371,7 +393,7 @@ def segment_by_difference(
     if not grow or params.grow_step_m <= 0 or len(seg.points) == 0:
         return seg
     seeds = pixel_mask(seg.points, K, T_world_cam, depth1.shape)[0] & appeared
-    candidate = appeared | vanished
+    candidate = appeared | vanished | above_support(depth1, K, T_world_cam, support, params.attach_min_height_m)
     if arm_mask is not None:
         candidate &= ~arm_mask
     grown = grow_depth_region(depth1, seeds, candidate, params.grow_step_m)
@@ -525,8 +547,9 @@ def refine_object_cloud(
     background: the decimated growth loses it in some captures and not others (20 mm of the
     cloth's top edge, 4 mm spread of its keypoints); full-resolution neighbours are a quarter as far apart.
 
-    support: a 1D object's table plane (``support_plane``): its thin parts standing above it are
-    grown at full resolution too (``grow_attached_tubes``). The last centimetre of a branch hanging
+    support: the table plane (``support_plane``): with refs, the regrowth also crosses the unchanged
+    pixels above it (``segment_by_difference``); without, a 1D object's thin parts standing above it
+    are grown at full resolution too (``grow_attached_tubes``). The last centimetre of a branch hanging
     just above the table is within a decimated pixel's noise of it and was lost in some captures
     (its tip 1-8 mm short over camera seeds).
     """
@@ -547,27 +570,31 @@ def refine_object_cloud(
     if refs is not None and params.grow_step_m > 0 and len(pts):
         seeds = np.zeros((H, W), bool)
         seeds[pix[near, 0], pix[near, 1]] = True
-        extra, _ = depth_to_points(depth, K, T_world_cam, _regrow(depth, seeds, refs, valid, params) & ~seeds)
+        above = above_support(depth, K, T_world_cam, support, params.attach_min_height_m) if support else None
+        extra, _ = depth_to_points(depth, K, T_world_cam, _regrow(depth, seeds, refs, valid, params, above) & ~seeds)
         pts = np.concatenate([pts, extra])
     if not len(pts):
         return cloud
     out = voxel_downsample(pts, params.voxel_m)
-    if support is not None:
+    if support is not None and refs is None:
         out = grow_attached_tubes(depth, Segmentation(out, len(pts), 1), K, T_world_cam, params, arm, support).points
     return out
 
 
 def _regrow(
-    depth: np.ndarray, seeds: np.ndarray, refs: np.ndarray, valid: np.ndarray, params: TrackingParams
+    depth: np.ndarray, seeds: np.ndarray, refs: np.ndarray, valid: np.ndarray, params: TrackingParams,
+    above: np.ndarray | None = None,
 ) -> np.ndarray:
     """Pixels (H, W) bool of a full-resolution depth (H, W) m changed against the references refs
-    (R, h, w) m (resized nearest) and reachable from seeds (H, W) bool through depth steps of at
-    most ``grow_step_m``; only ``valid`` (H, W) bool pixels are candidates."""
+    (R, h, w) m (resized nearest), or in ``above`` (H, W) bool (above the table), and reachable from
+    seeds (H, W) bool through depth steps of at most ``grow_step_m``; only ``valid`` (H, W) bool pixels
+    are candidates."""
     H, W = depth.shape
     refs = np.asarray(refs, np.float32).reshape(-1, *np.shape(refs)[-2:])
     up = np.stack([cv2.resize(ref, (W, H), interpolation=cv2.INTER_NEAREST) for ref in refs])
     appeared, vanished = difference_masks(up, depth, params)
-    return grow_depth_region(depth, seeds, ((appeared | vanished) & valid) | seeds, params.grow_step_m)
+    changed = appeared | vanished if above is None else appeared | vanished | above
+    return grow_depth_region(depth, seeds, (changed & valid) | seeds, params.grow_step_m)
 
 
 def _full_size(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
