@@ -191,6 +191,7 @@ def track_sequence(
     grasp: list[np.ndarray | None] = []
     pending: dict[int, _Pending] = {}  # the frames without keypoints, for the second pass
     statuses: list[str] = []
+    tangles = [0, 0]  # forward-pass frames left with a tangled grid, frames whose tangle was repaired
     abs_mm, cd_mm, gt_mm, ms = [], [], [], []
     topology = None
     t_start = time.monotonic()
@@ -205,6 +206,8 @@ def track_sequence(
             out = pipe.process(full, V, F, tcp, closed)
         ms.append((time.perf_counter() - t0) * 1e3)
         statuses.append(out.status)
+        tangles[0] += out.note.startswith("grid tangled")
+        tangles[1] += out.note == "grid tangle repaired"
         if len(out.keypoints) and topology is None:
             topology = out.topology
         same = topology is not None and len(out.keypoints) == topology.n_keypoints
@@ -247,6 +250,8 @@ def track_sequence(
     if filled.ms:
         metrics["fill_ms_per_frame_median"] = float(np.median(filled.ms))
     metrics["statuses"] = {s: statuses.count(s) for s in sorted(set(statuses))}
+    if topology.grid_shape is not None:
+        metrics["tangled_frames"], metrics["repaired_frames"] = tangles
     if gt_mm:
         metrics["gt_rmse_mm"] = float(np.sqrt(np.mean(np.square(gt_mm))))
     return {"raw": full, "grasp": grasp, "topology": topology, "metrics": metrics}

@@ -34,7 +34,7 @@ from tracking.segmentation import (
     unchanged_object_pixels,
     update_background,
 )
-from tracking.tracker import Tracker, TrackStatus
+from tracking.tracker import FrameResult, Tracker, TrackStatus
 
 
 @dataclass(frozen=True)
@@ -435,9 +435,13 @@ class LivePipeline:
             return PipelineOutput(**{**out.__dict__, "topology": topology})
         return self._output("tracking" if res.status == TrackStatus.OK else "degraded", res, seg.points)
 
-    def _output(self, status: str, res: object, cloud: np.ndarray) -> PipelineOutput:
+    def _output(self, status: str, res: FrameResult, cloud: np.ndarray) -> PipelineOutput:
+        note = ""
+        if res.tangled:
+            note = f"grid tangled: {res.tangled} cells" + (" after a repair" if res.repaired else "")
+        elif res.repaired:
+            note = "grid tangle repaired"
         return PipelineOutput(
-            status, res.keypoints, res.smoothed, np.asarray(res.grasp_idx, np.int64),  # type: ignore[attr-defined]
-            float(res.edge_rmse_mm), float(res.chamfer_mm), int(res.n_points),  # type: ignore[attr-defined]
-            self.tracker.topology, cloud,
+            status, res.keypoints, res.smoothed, np.asarray(res.grasp_idx, np.int64),
+            float(res.edge_rmse_mm), float(res.chamfer_mm), int(res.n_points), self.tracker.topology, cloud, note,
         )

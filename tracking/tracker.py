@@ -20,6 +20,7 @@ from tracking.metrics import chamfer_mm, edge_rmse_mm
 from tracking.params import TrackingParams
 from tracking.skeleton import LEAF
 from tracking.solver import solve_keypoints
+from tracking.tangle import relift_grid, tangled_cells
 
 
 class TrackStatus(str, Enum):
@@ -39,6 +40,8 @@ class FrameResult:
     status: TrackStatus (keypoints are only trustworthy when OK); edge_rmse_mm, chamfer_mm: Abs and CD;
     n_points: segmented points; anchors_matched / anchors_total: re-detected anchors used;
     grasp_idx: (G,) int64 keypoint held by each gripper, -1 = none.
+    tangled: a grid's tangled cells left in this solution (``tracking.tangle``; such a frame is bad);
+    repaired: the grid had tangled and was re-lifted from the frame's contour.
     """
 
     keypoints: np.ndarray
@@ -50,6 +53,8 @@ class FrameResult:
     anchors_matched: int
     anchors_total: int
     grasp_idx: np.ndarray
+    tangled: int = 0
+    repaired: bool = False
 
 
 def _hungarian(C: np.ndarray, bad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -346,9 +351,33 @@ class Tracker:
         pred = self.keypoints if self._velocity is None else self.keypoints + self._velocity
         tree = cKDTree(cloud)  # shared by the solver's cloud projection and the CD score
         X, matched = track_frame(self.keypoints, self.topology, tree, det, kinds, p, tcp, self.grasp_idx, pred)
-        res = self._result(X, tree, matched, na)
+        tangled, repaired = 0, False
+        if self.topology.grid_shape is not None:
+            X, matched, tangled, repaired = self._untangle(X, matched, cloud, tree, det, kinds, tcp, held)
+        res = self._result(X, tree, matched, na, tangled=tangled, repaired=repaired)
         self.last_timings_ms = {"anchors": 1e3 * (t1 - t0), "solve": 1e3 * (time.perf_counter() - t1)}
         return res
+
+    def _untangle(
+        self, X: np.ndarray, matched: int, cloud: np.ndarray, tree: cKDTree, det: np.ndarray, kinds: np.ndarray,
+        tcp: np.ndarray | None, held: np.ndarray | None,
+    ) -> tuple[np.ndarray, int, int, bool]:
+        """A grid solution X (N, 3) m checked for tangles; a tangled one is solved again from a grid re-lifted
+        from the frame's cloud (M, 3) m in the track's correspondence (``relift_grid``), kept when it has fewer
+        tangled cells. Returns (X, anchors matched, tangled cells left, repaired)."""
+        assert self.topology is not None and self.topology.grid_shape is not None
+        rows, cols = self.topology.grid_shape
+        bad = int(tangled_cells(X, rows, cols).sum())
+        if bad == 0:
+            return X, matched, 0, False
+        X0 = relift_grid(X, self.topology, cloud, self.K, self.T, self.params, held)
+        if X0 is None:
+            return X, matched, bad, False
+        X2, m2 = track_frame(X0, self.topology, tree, det, kinds, self.params, tcp, self.grasp_idx, X0)
+        bad2 = int(tangled_cells(X2, rows, cols).sum())
+        if bad2 < bad:
+            return X2, m2, bad2, True
+        return X, matched, bad, False
 
     def _begin_step(
         self, cloud: np.ndarray, tcp: np.ndarray | None, gripper_closed: np.ndarray | None
@@ -371,12 +400,14 @@ class Tracker:
         return None
 
     def _result(
-        self, X: np.ndarray, cloud: np.ndarray | cKDTree, matched: int, total: int, force_bad: bool = False
+        self, X: np.ndarray, cloud: np.ndarray | cKDTree, matched: int, total: int, force_bad: bool = False,
+        tangled: int = 0, repaired: bool = False,
     ) -> FrameResult:
         """Score a solution, update the state and the loss-of-track counter.
 
         A frame is bad without a cloud, when the keypoints jumped (solution discarded) or when Abs or
-        CD exceed their thresholds (solution kept as the next warm start, flagged DEGRADED).
+        CD exceed their thresholds (solution kept as the next warm start, flagged DEGRADED); a grid left
+        tangled (``tangled`` cells) is kept as the warm start too, flagged DEGRADED.
         """
         assert self.topology is not None
         p = self.params
@@ -384,7 +415,7 @@ class Tracker:
         n_points = cloud.n if isinstance(cloud, cKDTree) else len(cloud)
         cd_mm = chamfer_mm(X, cloud) if n_points else float("inf")
         jump = self.keypoints is not None and bool(np.median(np.linalg.norm(X - self.keypoints, axis=1)) > p.max_jump_m)
-        bad = force_bad or jump or abs_mm > 1e3 * p.max_edge_rmse_m or cd_mm > 1e3 * p.max_chamfer_m
+        bad = force_bad or tangled > 0 or jump or abs_mm > 1e3 * p.max_edge_rmse_m or cd_mm > 1e3 * p.max_chamfer_m
         self._bad = self._bad + 1 if bad else 0
         if not (force_bad or jump):
             if self.keypoints is not None and self.keypoints is not X:
@@ -398,4 +429,4 @@ class Tracker:
         if self._bad >= p.lost_after_frames:
             status = TrackStatus.LOST
             self.reset()
-        return FrameResult(X, smoothed, status, abs_mm, cd_mm, n_points, matched, total, grasp)
+        return FrameResult(X, smoothed, status, abs_mm, cd_mm, n_points, matched, total, grasp, tangled, repaired)

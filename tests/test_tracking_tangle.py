@@ -1,0 +1,94 @@
+"""A cloth grid's tangles: detection on folded and twisted grids, repair by a re-lifted grid in the track's order."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tdcommon.meshes import sheet_mesh
+from tracking import synthetic as S
+from tracking.init import initialise
+from tracking.params import TrackingParams
+from tracking.segmentation import background_from_depths, segment_against_background
+from tracking.tangle import grid_symmetries, relift_grid, tangled_cells
+from tracking.tracker import Tracker
+
+W, H = 640, 480
+P = TrackingParams()
+R = C = 6
+
+
+def _grid(fold: float = 0.0) -> np.ndarray:
+    """A 0.3 m square grid (R*C, 3) m, the rows past the third bent by ``fold`` rad about the third row's line."""
+    u, v = np.meshgrid(np.linspace(0.0, 0.3, C), np.linspace(0.0, 0.3, R))
+    X = np.stack([u, v, np.zeros_like(u)], axis=-1)
+    m = v > 0.121
+    d = v[m] - 0.12
+    X[m, 1] = 0.12 + d * np.cos(fold)
+    X[m, 2] = d * np.sin(fold)
+    return X.reshape(-1, 3)
+
+
+def test_a_flat_bent_or_sharply_folded_grid_is_not_tangled() -> None:
+    for fold in (0.0, 0.8, 1.9):  # flat, bent 45 degrees, folded 110 degrees along a grid line
+        assert not tangled_cells(_grid(fold), R, C).any()
+
+
+def test_a_corner_pulled_across_its_cell_or_cells_folded_onto_each_other_are_tangled() -> None:
+    X = _grid()
+    X[7] = X[14] + [0.01, 0.01, 0.0]  # node (1, 1) pulled past node (2, 2): its cells turn into bow-ties
+    bad = tangled_cells(X, R, C)
+    assert bad[:2, :2].any() and not bad[3:, 3:].any()
+    flat = _grid(np.pi - 0.2)  # folded back onto itself (170 degrees): opposed neighbouring cells
+    assert tangled_cells(flat, R, C).any()
+
+
+def test_grid_symmetries_are_permutations_that_keep_neighbours() -> None:
+    X = _grid(0.5)
+    E = np.array([[i, i + 1] for i in range(R * C) if (i + 1) % C] + [[i, i + C] for i in range(R * C - C)])
+    L = np.linalg.norm(X[E[:, 0]] - X[E[:, 1]], axis=1)
+    syms = grid_symmetries(R, C)
+    assert len(syms) == 8 and len({p.tobytes() for p in syms}) == 8
+    for p in syms:
+        assert sorted(p.tolist()) == list(range(R * C))
+        Y = X[p]
+        assert np.isclose(np.sort(np.linalg.norm(Y[E[:, 0]] - Y[E[:, 1]], axis=1)), np.sort(L)).all()
+    assert len(grid_symmetries(4, 6)) == 4
+
+
+@pytest.fixture(scope="module")
+def cloth_scene():
+    K, T = S.default_camera(W, H)
+    rng = np.random.default_rng(0)
+    bg = background_from_depths(np.stack([S.render_depth([S.table_mesh()], K, T, (H, W), rng=rng) for _ in range(3)]))
+    cs = S.cloth_surface()
+    d = S.render_depth([S.table_mesh(), sheet_mesh(cs)], K, T, (H, W), rng=rng)
+    return K, T, segment_against_background(d, bg, K, T, P).points
+
+
+def test_relifted_grid_keeps_the_tracks_keypoint_order(cloth_scene) -> None:
+    K, T, cloud = cloth_scene
+    ini = initialise(cloud, K, T, P, "2d")
+    for p in grid_symmetries(R, C):  # however the track's grid lies, the fresh one is laid the same way
+        prev = ini.keypoints[p]
+        topo = ini.topology
+        X = relift_grid(prev, topo, cloud, K, T, P)
+        assert X is not None
+        assert np.linalg.norm(X - prev, axis=1).max() < 0.015
+
+
+def test_tracker_repairs_a_tangled_grid_and_reports_it(cloth_scene) -> None:
+    K, T, cloud = cloth_scene
+    tr = Tracker(P, K, T)
+    tr.initialise(cloud, kind="2d")
+    assert tr.keypoints is not None
+    ok = tr.step(cloud)
+    assert ok.tangled == 0 and not ok.repaired
+    X = tr.keypoints.copy()
+    X[[7, 8, 13, 14]] = X[[8, 7, 14, 13]]  # an interior cell mirrored: turned inside out
+    assert tangled_cells(X, R, C).any()
+    tr.keypoints = X
+    res = tr.step(cloud)
+    assert res.repaired and res.tangled == 0
+    assert not tangled_cells(res.keypoints, R, C).any()
+    assert np.linalg.norm(res.keypoints - ok.keypoints, axis=1).max() < 0.02
