@@ -25,6 +25,7 @@ from tracking.segmentation import (
     Segmentation,
     background_from_depths,
     behind_near_object,
+    far_where_no_return,
     grow_attached_tubes,
     refine_object_cloud,
     render_arm_mask,
@@ -329,7 +330,7 @@ class LivePipeline:
 
     def _references(self) -> np.ndarray:
         assert self._d0 is not None
-        return np.stack([self._d0, *self._recent])
+        return far_where_no_return(np.stack([self._d0, *self._recent]), self.K_seg, self.seg_params)
 
     def _remember(self, depth: np.ndarray) -> None:
         self._since_recent += 1
@@ -378,9 +379,13 @@ class LivePipeline:
                 return self._empty("waiting", n, "waiting: the segmented object does not reach every closed gripper")
         bg = background_from_depths(refs)
         # where the object stood still in every reference the background is unknown, not the object
-        bg[unchanged_object_pixels(depth, bg, seg.points, self.K_seg, self.T, self.seg_params)] = 0.0
+        # (a 1D object: the initialised cloud, whose full-resolution growth found thin parts the decimated one
+        # missed, and every pixel whose background reading lies on it)
+        one_d = self.tracker.topology is not None and self.tracker.topology.kind == "1d"
+        obj = cloud if one_d else seg.points
+        bg[unchanged_object_pixels(depth, bg, obj, self.K_seg, self.T, self.seg_params, one_d)] = 0.0
         # the object's pixels behind the references (moving away) are object, not revealed background
-        keep = behind_near_object(depth, bg, self.seg_params, seg.points, self.K_seg, self.T, arm)
+        keep = behind_near_object(depth, bg, self.seg_params, obj, self.K_seg, self.T, arm)
         self.background = update_background(bg, depth, self.seg_params, arm, keep=keep)
         self._sizes.clear()
         self._grasp_rejections = 0
