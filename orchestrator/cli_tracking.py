@@ -93,6 +93,14 @@ def _arm_geometry(seq: Any, i: int, arms: Any) -> tuple[Any, Any, Any, Any]:
             for j, (a, q) in enumerate((("left", seq.q_left), ("right", seq.q_right)))
         }
         V, F, tcp, c = arms.from_state(state)
+        # an opening that was not recorded: the fingers are masked closed as well as open (the default width)
+        extra = [arms.kin[a].finger_meshes(q[i], 0.0) for a, q, w in
+                 (("left", seq.q_left, widths[0]), ("right", seq.q_right, widths[1]))
+                 if w is None or not np.isfinite(w[i])]
+        if extra:
+            from tdcommon.meshes import merge_meshes
+
+            V, F = merge_meshes([(V, F), *extra])
         return V, F, tcp, (c if closed is not None else None)
     if seq.tcp_left is not None and seq.tcp_right is not None:
         vl, fl = hand_mesh(seq.tcp_left[i], width[0])
