@@ -274,8 +274,16 @@ class LivePipeline:
             return seg
         held = np.asarray(held, np.float64).reshape(-1, 3)
         reached = cKDTree(seg.points).query(held)[0] <= p.grasp_gate_m
-        if reached.all():
-            return seg
+        if reached.all():  # the still free parts (a branch's tip lying on the table) are grown to their ends
+            out = seg
+            for _ in range(p.attach_iterations):
+                grown = grow_attached_tubes(depth, out, self.K_seg, self.T, p, arm, self._support)
+                new = grown.points[len(out.points):]
+                new = new[(np.linalg.norm(new[:, None, :] - held[None, :, :], axis=2) > p.grasp_gate_m).all(axis=1)]
+                if len(new) == 0:
+                    break
+                out = replace(out, points=np.concatenate([out.points, new]))
+            return out
         # what grows near a gripper is the gripper: within grasp_gate_m of one the cloud reached already,
         # within attach_reach_m of the others (the end is then within grasp_gate_m: initialisation puts it at the TCP)
         gate = np.where(reached, p.grasp_gate_m, min(p.attach_reach_m, p.grasp_gate_m))
