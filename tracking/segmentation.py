@@ -333,7 +333,10 @@ def far_where_no_return(refs: np.ndarray, K: np.ndarray, params: TrackingParams)
     if r < 1 or not none.any():
         return refs
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    far = cv2.morphologyEx(none.astype(np.uint8), cv2.MORPH_OPEN, kernel).astype(bool)
+    far = cv2.morphologyEx(none.astype(np.uint8), cv2.MORPH_OPEN, kernel)
+    # a structure thinner than that with empty space on both sides (a rope hanging still in every
+    # reference) has empty space behind it too
+    far = cv2.morphologyEx(far, cv2.MORPH_CLOSE, kernel).astype(bool)
     if not far.any():
         return refs
     out = stack.copy()
