@@ -268,7 +268,8 @@ class LivePipeline:
         parts above the table (``grow_attached_tubes``, ``attach_reach_m`` a step, up to ``attach_iterations``
         steps) while a holding gripper's TCP (held (G, 3) m) is farther than ``grasp_gate_m`` from it: in a
         slow start only the middle of a rope moves, and its still ends hang up to the grippers. Kept only when
-        it reaches a gripper the segmentation did not."""
+        it reaches a gripper the segmentation did not. When every gripper is reached already it is grown until
+        it stalls (nothing within ``grasp_gate_m`` of a TCP): a still free end, e.g. a branch's tip on the table."""
         p = self.seg_params
         if held is None or len(held) == 0 or len(seg.points) == 0 or self.kind == "2d" or seg.grown:
             return seg
