@@ -339,7 +339,8 @@ class LivePipeline:
 
     def _references(self) -> np.ndarray:
         assert self._d0 is not None
-        return far_where_no_return(np.stack([self._d0, *self._recent]), self.K_seg, self.seg_params)
+        refs = np.stack([self._d0, *self._recent])
+        return refs if self.kind == "2d" else far_where_no_return(refs, self.K_seg, self.seg_params)
 
     def _remember(self, depth: np.ndarray) -> None:
         self._since_recent += 1
