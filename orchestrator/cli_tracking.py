@@ -78,8 +78,9 @@ def cmd_watch(args: argparse.Namespace) -> int:
     return 0
 
 
-def _arm_geometry(seq: Any, i: int, arms: Any) -> tuple[Any, Any, Any, Any]:
-    """Arm meshes, TCPs and closed flags for frame ``i`` of a dataset (whole arms, or hands at the TCPs)."""
+def _arm_geometry(seq: Any, i: int, arms: Any, closed_fingers: bool = True) -> tuple[Any, Any, Any, Any]:
+    """Arm meshes, TCPs and closed flags for frame ``i`` of a dataset (whole arms, or hands at the TCPs).
+    closed_fingers: where the opening is not recorded, the fingers are also rendered closed."""
     from tdcommon.robot import hand_mesh
 
     closed = None
@@ -93,6 +94,14 @@ def _arm_geometry(seq: Any, i: int, arms: Any) -> tuple[Any, Any, Any, Any]:
             for j, (a, q) in enumerate((("left", seq.q_left), ("right", seq.q_right)))
         }
         V, F, tcp, c = arms.from_state(state)
+        # an opening that was not recorded: the fingers are masked closed as well as open (the default width)
+        extra = [arms.kin[a].finger_meshes(q[i], 0.0) for a, q, w in
+                 (("left", seq.q_left, widths[0]), ("right", seq.q_right, widths[1]))
+                 if closed_fingers and (w is None or not np.isfinite(w[i]))]
+        if extra:
+            from tdcommon.meshes import merge_meshes
+
+            V, F = merge_meshes([(V, F), *extra])
         return V, F, tcp, (c if closed is not None else None)
     if seq.tcp_left is not None and seq.tcp_right is not None:
         vl, fl = hand_mesh(seq.tcp_left[i], width[0])
@@ -196,7 +205,7 @@ def track_sequence(
     topology = None
     t_start = time.monotonic()
     for i, frame in enumerate(iter_depth(seq.frames)):  # depth only: tracking reads no colour
-        V, F, tcp, closed = _arm_geometry(seq, i, arms)
+        V, F, tcp, closed = _arm_geometry(seq, i, arms, closed_fingers=kind != "2d")
         full = None if pipe.state == "tracking" else frame.depth_m()  # only initialising needs the whole image
         t0 = time.perf_counter()
         if full is None:  # decimate the recorded image, then scale it (the float32 values decimate() gives)

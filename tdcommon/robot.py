@@ -146,6 +146,13 @@ class PandaKinematics:
         return merge_meshes([transform_mesh((link.vertices, link.triangles), poses[link.joint_index] @ link.placement)
                              for link in panda_link_meshes()])
 
+    def finger_meshes(self, q: np.ndarray, finger_width: float) -> tuple[np.ndarray, np.ndarray]:
+        """The two fingers alone at this opening (m) for joints ``q`` (7,): vertices (V, 3) float64 m world,
+        triangles (F, 3) int32."""
+        poses = self.joint_poses(q, finger_width)
+        return merge_meshes([transform_mesh((link.vertices, link.triangles), poses[link.joint_index] @ link.placement)
+                             for link in panda_link_meshes() if link.joint_index in HAND_JOINTS[1:]])
+
 
 def arm_inputs(left: PandaKinematics, right: PandaKinematics, q_left: np.ndarray, q_right: np.ndarray) -> np.ndarray:
     """The paper's control input u_t: (12,) = left TCP [p, rotvec] then right TCP [p, rotvec], world frame."""

@@ -152,6 +152,39 @@ def test_growth_stops_at_the_depth_step_behind_an_outline():
     assert (grown == sheet).all()
 
 
+def test_thin_growth_follows_a_diagonal_staircase_across_a_dropped_reading():
+    from tracking.segmentation import grow_depth_region
+
+    depth = np.full((30, 30), 2.0, np.float32)  # background 2 m
+    line = np.arange(3, 27)
+    depth[line, line] = 1.0 + 0.005 * (line - 3)  # a tube one pixel wide, receding 5 mm a pixel
+    depth[15, 15] = 0.0  # one reading dropped out
+    seeds = np.zeros(depth.shape, bool)
+    seeds[3, 3] = True
+    cand = np.ones(depth.shape, bool)
+    assert grow_depth_region(depth, seeds, cand, 0.01).sum() == 1  # 4-connected: the seed alone
+    grown = grow_depth_region(depth, seeds, cand, 0.01, thin=True)
+    tube = (depth > 0) & (depth < 1.5)
+    assert (grown == tube).all()
+
+
+def test_empty_space_behind_the_scene_is_far_in_the_references():
+    from tracking.segmentation import difference_masks, far_where_no_return
+
+    refs = np.full((2, 60, 80), 1.5, np.float32)
+    refs[:, :, :30] = 0.0  # no return on the left third: empty space beyond the sensor's range
+    refs[0, 40, 50] = refs[1, 40, 50] = 0.0  # one hole on the table: unknown, not far
+    K = np.array([[100.0, 0, 40], [0, 100.0, 30], [0, 0, 1]])
+    out = far_where_no_return(refs, K, P)
+    assert (out[:, :, :30] == np.float32(P.depth_max_m)).all() and (out[:, 40, 50] == 0).all()
+    depth = np.full((60, 80), 1.5, np.float32)
+    depth[:, :30] = 0.0
+    depth[20:40, 10:12] = 1.0  # a rope hanging in front of the empty space
+    depth[40, 50] = 1.0  # a reading where the references had a hole
+    appeared, _ = difference_masks(out, depth, P)
+    assert appeared[20:40, 10:12].all() and appeared.sum() == 40
+
+
 def _lying_rope(length: float = 0.3, radius: float = 0.007) -> tuple[np.ndarray, S.Mesh]:
     """A straight rope lying on the table along x: centreline (M, 3) m at height radius, and its mesh."""
     c = np.stack([np.linspace(-length / 2, length / 2, 121), np.zeros(121), np.full(121, radius)], axis=1)

@@ -39,6 +39,9 @@ class TrackingParams:
         tube at up to ~70 degrees to the image plane on a decimated image). An end dragged along the
         table (reach 0: off). attach_iterations:
         how many times the growth may repeat while a holding gripper's TCP is not reached.
+      no_return_open_m: a region of the references without a reading in any of them and wider than
+        this at 1 m is empty space beyond the sensor's range: its background is depth_max_m, so an
+        object in front of it counts as changed (0: such pixels stay unknown), m.
       track_gate_m: in tracking, a cluster is kept if some point lies within this of the previous keypoints, m.
       background_object_gap_m: a farther reading is absorbed into the background only if its 3D
         point lies more than this from the tracked object (last cloud, keypoint edges): else it is
@@ -125,6 +128,7 @@ class TrackingParams:
     attach_plane_tol_m: float = 0.004
     attach_plane_min_fraction: float = 0.3
     attach_min_height_m: float = 0.005
+    no_return_open_m: float = 0.02
     track_gate_m: float = 0.05
     background_object_gap_m: float = 0.015
     background_confirm_1d: int = 3

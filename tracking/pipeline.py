@@ -25,6 +25,7 @@ from tracking.segmentation import (
     Segmentation,
     background_from_depths,
     behind_near_object,
+    far_where_no_return,
     grow_attached_tubes,
     refine_object_cloud,
     render_arm_mask,
@@ -269,14 +270,23 @@ class LivePipeline:
         parts above the table (``grow_attached_tubes``, ``attach_reach_m`` a step, up to ``attach_iterations``
         steps) while a holding gripper's TCP (held (G, 3) m) is farther than ``grasp_gate_m`` from it: in a
         slow start only the middle of a rope moves, and its still ends hang up to the grippers. Kept only when
-        it reaches a gripper the segmentation did not."""
+        it reaches a gripper the segmentation did not. When every gripper is reached already it is grown until
+        it stalls (nothing within ``grasp_gate_m`` of a TCP): a still free end, e.g. a branch's tip on the table."""
         p = self.seg_params
         if held is None or len(held) == 0 or len(seg.points) == 0 or self.kind == "2d" or seg.grown:
             return seg
         held = np.asarray(held, np.float64).reshape(-1, 3)
         reached = cKDTree(seg.points).query(held)[0] <= p.grasp_gate_m
-        if reached.all():
-            return seg
+        if reached.all():  # the still free parts (a branch's tip lying on the table) are grown to their ends
+            out = seg
+            for _ in range(p.attach_iterations):
+                grown = grow_attached_tubes(depth, out, self.K_seg, self.T, p, arm, self._support)
+                new = grown.points[len(out.points):]
+                new = new[(np.linalg.norm(new[:, None, :] - held[None, :, :], axis=2) > p.grasp_gate_m).all(axis=1)]
+                if len(new) == 0:
+                    break
+                out = replace(out, points=np.concatenate([out.points, new]))
+            return out
         # what grows near a gripper is the gripper: within grasp_gate_m of one the cloud reached already,
         # within attach_reach_m of the others (the end is then within grasp_gate_m: initialisation puts it at the TCP)
         gate = np.where(reached, p.grasp_gate_m, min(p.attach_reach_m, p.grasp_gate_m))
@@ -348,7 +358,8 @@ class LivePipeline:
 
     def _references(self) -> np.ndarray:
         assert self._d0 is not None
-        return np.stack([self._d0, *self._recent])
+        refs = np.stack([self._d0, *self._recent])
+        return refs if self.kind == "2d" else far_where_no_return(refs, self.K_seg, self.seg_params)
 
     def _remember(self, depth: np.ndarray) -> None:
         self._since_recent += 1
@@ -394,9 +405,13 @@ class LivePipeline:
                 return self._empty("waiting", n, "waiting: the segmented object does not reach every closed gripper")
         bg = background_from_depths(refs)
         # where the object stood still in every reference the background is unknown, not the object
-        bg[unchanged_object_pixels(depth, bg, seg.points, self.K_seg, self.T, self.seg_params)] = 0.0
+        # (a 1D object: the initialised cloud, whose full-resolution growth found thin parts the decimated one
+        # missed, and every pixel whose background reading lies on it)
+        one_d = self.tracker.topology is not None and self.tracker.topology.kind == "1d"
+        obj = cloud if one_d else seg.points
+        bg[unchanged_object_pixels(depth, bg, obj, self.K_seg, self.T, self.seg_params, one_d)] = 0.0
         # the object's pixels behind the references (moving away) are object, not revealed background
-        keep = behind_near_object(depth, bg, self.seg_params, seg.points, self.K_seg, self.T, arm)
+        keep = behind_near_object(depth, bg, self.seg_params, obj, self.K_seg, self.T, arm)
         self.background = update_background(bg, depth, self.seg_params, arm, keep=keep)
         self._sizes.clear()
         self._grasp_rejections = 0

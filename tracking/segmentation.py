@@ -315,13 +315,50 @@ def difference_masks(
     return appeared, vanished
 
 
-def grow_depth_region(depth: np.ndarray, seeds: np.ndarray, candidate: np.ndarray, step_m: float) -> np.ndarray:
+def far_where_no_return(refs: np.ndarray, K: np.ndarray, params: TrackingParams) -> np.ndarray:
+    """References (R, H, W) m with the scene's empty space set to ``depth_max_m``.
+
+    A pixel without a reading in any reference looks at nothing within the sensor's range (an
+    open room beyond a table seen from the side) when it belongs to a no-return region wider than
+    ``no_return_open_m`` at 1 m (an opening with that kernel on the camera matrix K (3, 3) of this
+    image): the object appearing there is in front of it, as it is in front of a far wall. Thinner
+    holes (stereo shadow bands beside an edge, dropout) stay unknown (0). Returns a new array,
+    or refs itself when nothing is filled.
+    """
+    if params.no_return_open_m <= 0:
+        return refs
+    stack = np.asarray(refs, np.float32).reshape(-1, *np.shape(refs)[-2:])
+    none = ~((stack > 0) & (stack <= np.float32(params.depth_max_m))).any(axis=0)
+    r = int(round(0.5 * params.no_return_open_m * float(K[0, 0])))
+    if r < 1 or not none.any():
+        return refs
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    far = cv2.morphologyEx(none.astype(np.uint8), cv2.MORPH_OPEN, kernel)
+    # a structure thinner than that with empty space on both sides (a rope hanging still in every
+    # reference) has empty space behind it too
+    far = cv2.morphologyEx(far, cv2.MORPH_CLOSE, kernel).astype(bool)
+    if not far.any():
+        return refs
+    out = stack.copy()
+    out[:, far] = np.float32(params.depth_max_m)
+    return out.reshape(np.shape(refs))
+
+
+def grow_depth_region(
+    depth: np.ndarray, seeds: np.ndarray, candidate: np.ndarray, step_m: float, thin: bool = False
+) -> np.ndarray:
     """Pixels of ``candidate`` (H, W) bool connected to ``seeds`` (H, W) bool through a depth-continuous surface.
 
     depth: (H, W) float m. Two 4-neighbours are continuous when their depths differ by at most
     ``step_m`` m; a pixel with a neighbour nearer than that (the far side of an occluding edge) is
     cut, so a surface never connects to what lies behind its outline. Connected components of the
     remaining candidates (4-connectivity) touching a seed are returned, (H, W) bool.
+
+    thin: the region is a structure one or two pixels wide (a tube on a decimated image): a diagonal
+    staircase whose pixels touch only at corners, broken wherever one reading drops out. Diagonal
+    neighbours then count too (8-connectivity; they are sqrt(2) pixels apart, so their step limit is
+    sqrt(2) * step_m), and a missing pixel enclosed by candidates (a 3x3 closing) links the neighbours
+    within the step of the nearest reading around it (not the surface behind a tube).
     """
     z = np.where(depth > 0, depth, np.float32(1e3)).astype(np.float32)  # missing: far, never continuous
     far = np.zeros(depth.shape, bool)
@@ -333,6 +370,8 @@ def grow_depth_region(depth: np.ndarray, seeds: np.ndarray, candidate: np.ndarra
     far[:, 1:] |= dh > step
     far[:, :-1] |= -dh > step
     cand = candidate & ~far & (depth > 0)
+    if thin:
+        return _grow_thin(z, seeds, cand, step)
     n, lab = cv2.connectedComponents(cand.astype(np.uint8), connectivity=4)
     keep = np.zeros(n, bool)
     keep[lab[seeds & cand]] = True
@@ -355,6 +394,38 @@ def above_support(
     v = ((np.arange(H, dtype=np.float32) - np.float32(K[1, 2])) / np.float32(K[1, 1])) * np.float32(a[1])
     height = depth * (v[:, None] + u[None, :] + np.float32(a[2])) + np.float32(T_world_cam[:3, 3] @ n - o)
     return (depth > 0) & (height >= np.float32(min_height_m))
+
+
+def _grow_thin(z: np.ndarray, seeds: np.ndarray, cand: np.ndarray, step: np.float32) -> np.ndarray:
+    """``grow_depth_region(thin=True)`` after the 4-neighbour cut: z (H, W) float32 m (missing 1e3), cand
+    (H, W) bool the remaining candidates. Pixels are linked to their 8 neighbours within the step (sqrt(2) x
+    for diagonals); a missing pixel enclosed by candidates links as if it read the nearest reading around it."""
+    H, W = z.shape
+    missing = z >= np.float32(1e3)
+    zf = np.where(missing, cv2.erode(z, np.ones((3, 3), np.uint8)), z)
+    closed = cv2.morphologyEx(cand.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)).astype(bool)
+    links = cand | (closed & missing & (zf < np.float32(1e3)))
+    idx = np.full((H, W), -1, np.int64)
+    n = int(links.sum())
+    if n == 0:
+        return links
+    idx[links] = np.arange(n)
+    diag = np.float32(np.sqrt(2.0)) * step
+    src, dst = [], []
+    for dr, dc, lim in ((0, 1, step), (1, 0, step), (1, 1, diag), (1, -1, diag)):
+        r0, r1 = slice(0, H - dr), slice(dr, H)
+        c0, c1 = (slice(0, W - dc), slice(dc, W)) if dc >= 0 else (slice(-dc, W), slice(0, W + dc))
+        ok = links[r0, c0] & links[r1, c1] & (np.abs(zf[r0, c0] - zf[r1, c1]) <= lim)
+        src.append(idx[r0, c0][ok])
+        dst.append(idx[r1, c1][ok])
+    s, d = np.concatenate(src), np.concatenate(dst)
+    graph = coo_matrix((np.ones(len(s), np.int8), (s, d)), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    keep = np.zeros(int(comp.max()) + 1, bool)
+    keep[comp[idx[seeds & cand]]] = True
+    out = np.zeros((H, W), bool)
+    out[links] = keep[comp]
+    return out & cand
 
 
 def segment_by_difference(
@@ -503,9 +574,11 @@ def grow_attached_tubes(
         return seg
     cand = np.zeros((H, W), bool)
     cand[zpix[:, 0], zpix[:, 1]] = True
-    # a tube inclined to the image plane steps by its slope times the pixel footprint between neighbours
-    step = max(params.attach_step_m, params.attach_step_px * px_m)
-    grown = grow_depth_region(depth1, obj, obj | cand, step) & cand
+    # a tube inclined to the image plane steps by its slope times the pixel footprint between neighbours,
+    # give or take the noise of the two readings
+    noise = np.sqrt(2.0) * float(change_threshold(np.float32(zmed), params))
+    step = max(params.attach_step_m, params.attach_step_px * px_m) + noise
+    grown = grow_depth_region(depth1, obj, obj | cand, step, thin=True) & cand
     if not grown.any():
         return seg
     _, lab = cv2.connectedComponents(grown.astype(np.uint8), connectivity=8)
@@ -699,23 +772,35 @@ def update_background(
 
 def unchanged_object_pixels(
     depth: np.ndarray, background: np.ndarray, cloud: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray,
-    params: TrackingParams,
+    params: TrackingParams, by_background: bool = False,
 ) -> np.ndarray:
     """(H, W) bool: pixels of the object cloud (N, 3) m world in depth (H, W) m (within a voxel's footprint of
     its projection and ``voxel_m`` of it in 3D) where the background (H, W) m is within the change threshold
-    of the depth: the object stood there in every reference, so the background there is the object itself."""
+    of the depth: the object stood there in every reference, so the background there is the object itself.
+
+    by_background: test the background's own reading instead: a footprint pixel whose background lifts to
+    within ``voxel_m`` plus the change threshold of the cloud, whatever the depth reads now. A thin tube
+    hanging still is one or two pixels wide and its readings scatter by about the threshold: the depth test
+    keeps the background on the object wherever this frame's reading happened to differ, and later
+    readings on the near side of that background are then neither in front of nor behind it.
+    """
     H, W = depth.shape
     on, zmed = pixel_mask(cloud, K, T_world_cam, (H, W))
     r = max(1, int(np.ceil(params.voxel_m * float(K[0, 0]) / zmed)))
     near = cv2.dilate(on.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2))
-    cand = near.astype(bool) & valid_depth(depth, params) & (background > 0)
-    cand &= np.abs(depth - background) <= change_threshold(background, params)
+    cand = near.astype(bool) & (background > 0)
+    thr = change_threshold(background, params)
+    if by_background:
+        cand &= valid_depth(background, params)
+    else:
+        cand &= valid_depth(depth, params) & (np.abs(depth - background) <= thr)
     out = np.zeros((H, W), bool)
     if len(cloud) == 0 or not cand.any():
         return out
-    pts, rc = depth_to_points(depth, K, T_world_cam, cand)
-    d, _ = cKDTree(cloud).query(pts, distance_upper_bound=params.voxel_m)
-    hit = np.isfinite(d)
+    pts, rc = depth_to_points(background if by_background else depth, K, T_world_cam, cand)
+    tol = params.voxel_m + (thr[rc[:, 0], rc[:, 1]] if by_background else 0.0)
+    d, _ = cKDTree(cloud).query(pts, distance_upper_bound=float(np.max(tol)))
+    hit = d <= tol
     out[rc[hit, 0], rc[hit, 1]] = True
     return out
 

@@ -293,8 +293,8 @@ class Tracker:
     ) -> tuple[Initialisation, FrameResult]:
         """Initialise on a segmented cloud (M, 3) m; tcp (G, 3) m of the grippers gives grasp indices
         (and keypoint 0 at the first gripper's end); the ends (corners) held by the closed grippers
-        (gripper_closed (G,) bool; None: for a cloth, kind "2d", every TCP within ``grasp_gate_m`` of a
-        corner) are placed at their TCPs.
+        (gripper_closed (G,) bool; None: every TCP within ``grasp_gate_m`` of an end or a corner) are placed
+        at their TCPs.
 
         Raises tracking.init.InitialisationError when the cloud cannot be initialised.
         """
@@ -305,8 +305,9 @@ class Tracker:
             held = None
         elif gripper_closed is not None:
             held = tcps[np.asarray(gripper_closed, bool)]
-        else:  # no gripper states: a cloth's corner within grasp_gate_m of a TCP is held there (tracking pins it)
-            held = tcps if kind == "2d" else None
+        else:  # no gripper states: an end (a cloth's corner) within grasp_gate_m of a TCP is held there (tracking
+            # pins it there: its grasp index), so the rest lengths span the part hidden between the fingers
+            held = tcps
         # the ablation switches are of the tracking step (the paper's Table II): every variant starts from the
         # full method's initialisation
         full = replace(self.params, use_anchors=True, use_edge_projection=True, use_cloud_projection=True)
