@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, replace
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -81,6 +82,26 @@ def _rays_needed(
     return np.cumsum(np.cumsum(cover, axis=0), axis=1)[:nr, :nc] > 0.5, hit
 
 
+@lru_cache(maxsize=4)
+def _pixel_rays(K_bytes: bytes, T_bytes: bytes, H: int, W: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every pixel's viewing ray of a camera (K (3, 3), T_world_cam (4, 4) as float64 bytes) with an (H, W)
+    image: unit world-frame directions (H, W, 3) float32 and their camera z components (H, W) float64
+    (hit distance times it is the z-depth). Cached: the camera of a sequence is fixed, and building them
+    for the arms' box every frame cost as much as casting. Read-only arrays."""
+    K = np.frombuffer(K_bytes, np.float64).reshape(3, 3)
+    R = np.frombuffer(T_bytes, np.float64).reshape(4, 4)[:3, :3]
+    cc, rr = np.meshgrid(np.arange(W), np.arange(H))
+    dc = np.stack(
+        [(cc - K[0, 2]) / K[0, 0], (rr - K[1, 2]) / K[1, 1], np.ones_like(cc, dtype=np.float64)], axis=-1
+    ).reshape(-1, 3)
+    dc /= np.linalg.norm(dc, axis=1, keepdims=True)
+    dirs = (dc @ R.T).astype(np.float32).reshape(H, W, 3)
+    dirs_z = dc[:, 2].reshape(H, W)
+    dirs.flags.writeable = False
+    dirs_z.flags.writeable = False
+    return dirs, dirs_z
+
+
 def render_arm_depth(
     vertices: np.ndarray,
     triangles: np.ndarray,
@@ -117,20 +138,17 @@ def render_arm_depth(
         return out
     rows = np.arange(r0, r1, stride)
     cols = np.arange(c0, c1, stride)
-    cc, rr = np.meshgrid(cols, rows)
+    dirs, dirs_z = _pixel_rays(K.tobytes(), T_world_cam.tobytes(), H, W)
+    dirs, dirs_z = dirs[r0:r1:stride, c0:c1:stride], dirs_z[r0:r1:stride, c0:c1:stride]
     need = None
     if front.all():
-        need, reach = _rays_needed(u, v, np.asarray(triangles), r0, c0, cc.shape, stride)
+        need, reach = _rays_needed(u, v, np.asarray(triangles), r0, c0, dirs_z.shape, stride)
         if not need.any():
             return out
-        cc, rr, triangles = cc[need], rr[need], np.asarray(triangles)[reach]
-    dc = np.stack(
-        [(cc - K[0, 2]) / K[0, 0], (rr - K[1, 2]) / K[1, 1], np.ones_like(cc, dtype=np.float64)], axis=-1
-    ).reshape(-1, 3)
-    dc /= np.linalg.norm(dc, axis=1, keepdims=True)
-    rays = np.empty((len(dc), 6), np.float32)
+        dirs, dirs_z, triangles = dirs[need], dirs_z[need], np.asarray(triangles)[reach]
+    rays = np.empty((dirs_z.size, 6), np.float32)
     rays[:, :3] = t
-    rays[:, 3:] = dc @ R.T
+    rays[:, 3:] = dirs.reshape(-1, 3)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
         o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
@@ -138,10 +156,10 @@ def render_arm_depth(
     )
     t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
     if need is None:
-        z = (t_hit * dc[:, 2]).astype(np.float32).reshape(len(rows), len(cols))
+        z = (t_hit * dirs_z.ravel()).astype(np.float32).reshape(len(rows), len(cols))
     else:
         z = np.full((len(rows), len(cols)), np.inf, np.float32)
-        z[need] = (t_hit * dc[:, 2]).astype(np.float32)
+        z[need] = (t_hit * dirs_z).astype(np.float32)
     block = np.repeat(np.repeat(z, stride, axis=0), stride, axis=1)[: r1 - r0, : c1 - c0]
     out[r0:r1, c0:c1] = block
     return out
