@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from tdcommon.meshes import box_mesh, tube_mesh
+from tracking import segmentation as seg_module
 from tracking import synthetic as S
 from tracking.geometry import depth_to_points, project_points
 from tracking.params import TrackingParams
@@ -97,7 +98,7 @@ def test_arm_depth_casts_only_rays_that_can_hit_and_equals_casting_every_ray(cam
 
 
 @pytest.mark.parametrize("stride", [1, 2, 3])
-def test_rasterised_arm_depth_is_the_raycast_one(cam, stride):
+def test_rasterised_arm_depth_is_the_raycast_one(cam, stride, monkeypatch):
     """The z-buffer render hits the pixels the raycast one hits, at the same depth (float32 rounding aside);
     a mesh reaching behind the camera is raycast."""
     K, T = cam
@@ -117,6 +118,8 @@ def test_rasterised_arm_depth_is_the_raycast_one(cam, stride):
     Fb = np.concatenate([F, [[0, 1, len(V)]]]).astype(np.int32)
     np.testing.assert_array_equal(rasterise_depth(behind, Fb, K, T, (H, W), stride),
                                   render_arm_depth(behind, Fb, K, T, (H, W), stride))
+    monkeypatch.setattr(seg_module, "_RASTER_MAX_FRAGMENTS", 10)  # too many pixels to hold: raycast
+    np.testing.assert_array_equal(rasterise_depth(V, F, K, T, (H, W), stride), want)
 
 def test_difference_segmentation_isolates_rope_without_colour(cam):
     K, T = cam

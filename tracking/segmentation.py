@@ -165,6 +165,9 @@ def render_arm_depth(
     return out
 
 
+_RASTER_MAX_FRAGMENTS = 1_000_000  # (triangle, pixel) pairs rasterise_depth holds at once (~10 arrays of them)
+
+
 def rasterise_depth(
     vertices: np.ndarray,
     triangles: np.ndarray,
@@ -179,7 +182,8 @@ def rasterise_depth(
     ``stride``-th pixel in the meshes' projected box, upsampled): each triangle is scanned row by row over the
     grid pixels whose centre its projection covers (both faces), at the camera z-depth where that pixel's ray
     meets its plane (kept within the triangle's depth range: an edge-on sliver's plane is ill-conditioned).
-    A mesh with a vertex behind the camera is raycast (``render_arm_depth``).
+    A mesh with a vertex behind the camera, or covering more than ``_RASTER_MAX_FRAGMENTS`` grid pixels
+    counted per triangle (memory), is raycast (``render_arm_depth``).
     Returns (H, W) float32 camera z-depth in metres, +inf where no mesh is hit.
     """
     H, W = shape
@@ -225,6 +229,8 @@ def rasterise_depth(
     jlo = np.maximum(np.ceil((np.minimum(x_long, x_short) - c0) / stride), 0).astype(np.int64)
     jhi = np.minimum(np.floor((np.maximum(x_long, x_short) - c0) / stride), nc - 1).astype(np.int64)
     ncol = np.maximum(jhi - jlo + 1, 0)
+    if int(ncol.sum()) > _RASTER_MAX_FRAGMENTS:  # meshes covering the image many times over: raycast them
+        return render_arm_depth(vertices, triangles, K, T_world_cam, shape, stride)
     px = np.repeat(np.arange(len(f)), ncol)  # one entry per (triangle, grid pixel)
     if len(px) == 0:
         return out
