@@ -35,15 +35,16 @@ def edge_colouring(edges: np.ndarray, n_vertices: int) -> list[np.ndarray]:
 def edge_plan(
     edges: np.ndarray, rest: np.ndarray, inv_mass: np.ndarray, classes: list[np.ndarray]
 ) -> list[tuple[np.ndarray, ...]]:
-    """What ``project_edges`` needs of each colour class and does not change between sweeps: per class
-    (i (C,), j (C,) int64 endpoints, wi (C, 1), wj (C, 1) inverse masses, wsum (C,), movable (C,) bool
-    wsum > 0, rest (C,) m), so a sweep indexes only the keypoints."""
+    """What ``project_edges`` needs of each colour class and does not change between sweeps: per class of C
+    edges (ends (2C,) int64: the first endpoints then the second ones, w (2, C, 1) their inverse masses, the
+    second ones negated, wsum (C,), movable (C,) bool wsum > 0, rest (C,) m), so a sweep indexes only the
+    keypoints, once."""
     plan = []
     for cls in classes:
         i, j = edges[cls, 0], edges[cls, 1]
         wi, wj = inv_mass[i], inv_mass[j]
         wsum = wi + wj
-        plan.append((i, j, wi[:, None], wj[:, None], wsum, wsum > 0, rest[cls]))
+        plan.append((np.concatenate([i, j]), np.stack([wi, -wj])[:, :, None], wsum, wsum > 0, rest[cls]))
     return plan
 
 
@@ -58,13 +59,17 @@ def project_edges(
     (half each when both are free, as projective dynamics eq. 8). plan: ``edge_plan`` of these
     arguments when the caller sweeps many times (then edges, rest, inv_mass and classes are not read).
     """
-    for i, j, wi, wj, wsum, movable, r in plan if plan is not None else edge_plan(edges, rest, inv_mass, classes):
-        d = X[j] - X[i]
+    for ends, w, wsum, movable, r in plan if plan is not None else edge_plan(edges, rest, inv_mass, classes):
+        C = len(r)
+        P = X[ends]  # a class's edges share no keypoint: its first endpoints, then its second ones
+        d = P[C:] - P[:C]
         L = np.sqrt(np.add.reduce(d * d, axis=1))  # np.linalg.norm(d, axis=1), without its checks
         ok = movable & (L > 1e-12)
-        s = np.where(ok, (L - r) / np.where(ok, L * wsum, 1.0), 0.0)[:, None] * d
-        X[i] += wi * s
-        X[j] -= wj * s
+        if ok.all():
+            s = ((L - r) / (L * wsum))[:, None] * d
+        else:
+            s = np.where(ok, (L - r) / np.where(ok, L * wsum, 1.0), 0.0)[:, None] * d
+        X[ends] = P + (w * s).reshape(2 * C, 3)  # first endpoints + wi s, second ones - wj s
 
 
 def project_to_cloud(X: np.ndarray, tree: cKDTree, k: int, max_slide_m: float) -> np.ndarray:
