@@ -178,6 +178,13 @@ class _Pending(NamedTuple):
         return PreparedFrame(depth, arm)
 
 
+
+def stage_medians(stages: list[dict[str, float]]) -> dict[str, float]:
+    """Median time of each pipeline stage (``PipelineOutput.timings_ms``: arm, segment, anchors, solve, ...,
+    total) over the frames that ran it, ms, from one dict per frame."""
+    names = sorted({k for st in stages for k in st})
+    return {k: round(float(np.median([st[k] for st in stages if k in st])), 3) for k in names}
+
 def track_sequence(
     seq: Any, params: Any, kind: str | None, progress: bool = True, on_frame: Callable[[int], None] | None = None
 ) -> dict[str, Any]:
@@ -202,6 +209,7 @@ def track_sequence(
     statuses: list[str] = []
     tangles = [0, 0]  # forward-pass frames left with a tangled grid, frames whose tangle was repaired
     abs_mm, cd_mm, gt_mm, ms = [], [], [], []
+    stages: list[dict[str, float]] = []  # each forward frame's LivePipeline.timings_ms (arm: its prepare)
     topology = None
     t_start = time.monotonic()
     for i, frame in enumerate(iter_depth(seq.frames)):  # depth only: tracking reads no colour
@@ -210,10 +218,14 @@ def track_sequence(
         t0 = time.perf_counter()
         if full is None:  # decimate the recorded image, then scale it (the float32 values decimate() gives)
             prepared = pipe.prepare(frame.depth, V, F, depth_scale=frame.depth_scale)
+            t_arm = time.perf_counter()
             out = pipe.process(None, tcp=tcp, gripper_closed=closed, prepared=prepared)
         else:
+            t_arm = None
             out = pipe.process(full, V, F, tcp, closed)
         ms.append((time.perf_counter() - t0) * 1e3)
+        stages.append({**out.timings_ms, "total": ms[-1]} if t_arm is None else
+                      {**out.timings_ms, "arm": (t_arm - t0) * 1e3, "total": ms[-1]})
         statuses.append(out.status)
         tangles[0] += out.note.startswith("grid tangled")
         tangles[1] += out.note == "grid tangle repaired"
@@ -258,6 +270,7 @@ def track_sequence(
     metrics["backward_frames"], metrics["forward_filled_frames"] = filled.backward, filled.forward
     if filled.ms:
         metrics["fill_ms_per_frame_median"] = float(np.median(filled.ms))
+    metrics["stage_ms_median"] = {"forward": stage_medians(stages), "fill": stage_medians(filled.stages)}
     metrics["statuses"] = {s: statuses.count(s) for s in sorted(set(statuses))}
     if topology.grid_shape is not None:
         metrics["tangled_frames"], metrics["repaired_frames"] = tangles

@@ -7,12 +7,14 @@ import pytest
 from scipy.spatial import cKDTree
 
 from tdcommon.meshes import box_mesh, tube_mesh
+from tracking import segmentation as seg_module
 from tracking import synthetic as S
 from tracking.geometry import depth_to_points, project_points
 from tracking.params import TrackingParams
 from tracking.segmentation import (
     background_from_depths,
     behind_near_object,
+    rasterise_depth,
     render_arm_depth,
     render_arm_mask,
     segment_against_background,
@@ -93,6 +95,31 @@ def test_arm_depth_casts_only_rays_that_can_hit_and_equals_casting_every_ray(cam
     assert np.isfinite(got).sum() > 1000 and np.isfinite(got[:, : W // 2]).any() and np.isfinite(got[:, W // 2:]).any()
     np.testing.assert_array_equal(got, want)
 
+
+
+@pytest.mark.parametrize("stride", [1, 2, 3])
+def test_rasterised_arm_depth_is_the_raycast_one(cam, stride, monkeypatch):
+    """The z-buffer render hits the pixels the raycast one hits, at the same depth (float32 rounding aside);
+    a mesh reaching behind the camera is raycast."""
+    K, T = cam
+    parts = [box_mesh((x, 0.1, 0.2), (0.05, 0.05, 0.2)) for x in (-0.25, 0.25)]
+    parts.append(tube_mesh(np.array([[-3.0, 0.3, 0.1], [3.0, 0.3, 0.1]]), 0.02))  # reaching far out of view
+    V = np.concatenate([v for v, _ in parts])
+    F = np.concatenate([f + sum(len(v) for v, _ in parts[:k]) for k, (_, f) in enumerate(parts)]).astype(np.int32)
+    want = render_arm_depth(V, F, K, T, (H, W), stride)
+    got = rasterise_depth(V, F, K, T, (H, W), stride)
+    hit = np.isfinite(want)
+    assert hit.sum() > 1000
+    assert (np.isfinite(got) != hit).sum() <= 0.002 * hit.sum()  # pixel centres on a triangle's edge at most
+    both = hit & np.isfinite(got)
+    np.testing.assert_allclose(got[both], want[both], atol=1e-5)
+    eye = T[:3, 3]
+    behind = np.concatenate([V, eye + (eye - V.mean(axis=0))[None]])  # an extra vertex behind the camera
+    Fb = np.concatenate([F, [[0, 1, len(V)]]]).astype(np.int32)
+    np.testing.assert_array_equal(rasterise_depth(behind, Fb, K, T, (H, W), stride),
+                                  render_arm_depth(behind, Fb, K, T, (H, W), stride))
+    monkeypatch.setattr(seg_module, "_RASTER_MAX_FRAGMENTS", 10)  # too many pixels to hold: raycast
+    np.testing.assert_array_equal(rasterise_depth(V, F, K, T, (H, W), stride), want)
 
 def test_difference_segmentation_isolates_rope_without_colour(cam):
     K, T = cam

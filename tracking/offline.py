@@ -39,11 +39,13 @@ class FrameInput:
 
 @dataclass
 class FillResult:
-    """What ``fill_missing`` did: frames tracked backwards / forwards, and each one's ``process`` time, ms."""
+    """What ``fill_missing`` did: frames tracked backwards / forwards, each one's ``process`` time, ms, and its
+    stages' (``PipelineOutput.timings_ms``)."""
 
     backward: int = 0
     forward: int = 0
     ms: list[float] = field(default_factory=list)
+    stages: list[dict[str, float]] = field(default_factory=list)
 
 
 def gaps(have: np.ndarray) -> list[tuple[int, int]]:
@@ -87,6 +89,7 @@ def fill_missing(
             t0 = time.perf_counter()
             out = pipe.process(f.depth, f.arm_vertices, f.arm_triangles, f.tcp, f.closed, prepared=f.prepared)
             res.ms.append(1e3 * (time.perf_counter() - t0))
+            res.stages.append(out.timings_ms)
             if len(out.keypoints) == N:
                 X, g = out.keypoints, out.grasp_idx
             keypoints[i], grasp_idx[i] = X, g

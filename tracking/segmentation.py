@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, replace
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -81,6 +82,26 @@ def _rays_needed(
     return np.cumsum(np.cumsum(cover, axis=0), axis=1)[:nr, :nc] > 0.5, hit
 
 
+@lru_cache(maxsize=4)
+def _pixel_rays(K_bytes: bytes, T_bytes: bytes, H: int, W: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every pixel's viewing ray of a camera (K (3, 3), T_world_cam (4, 4) as float64 bytes) with an (H, W)
+    image: unit world-frame directions (H, W, 3) float32 and their camera z components (H, W) float64
+    (hit distance times it is the z-depth). Cached: the camera of a sequence is fixed, and building them
+    for the arms' box every frame cost as much as casting. Read-only arrays."""
+    K = np.frombuffer(K_bytes, np.float64).reshape(3, 3)
+    R = np.frombuffer(T_bytes, np.float64).reshape(4, 4)[:3, :3]
+    cc, rr = np.meshgrid(np.arange(W), np.arange(H))
+    dc = np.stack(
+        [(cc - K[0, 2]) / K[0, 0], (rr - K[1, 2]) / K[1, 1], np.ones_like(cc, dtype=np.float64)], axis=-1
+    ).reshape(-1, 3)
+    dc /= np.linalg.norm(dc, axis=1, keepdims=True)
+    dirs = (dc @ R.T).astype(np.float32).reshape(H, W, 3)
+    dirs_z = dc[:, 2].reshape(H, W)
+    dirs.flags.writeable = False
+    dirs_z.flags.writeable = False
+    return dirs, dirs_z
+
+
 def render_arm_depth(
     vertices: np.ndarray,
     triangles: np.ndarray,
@@ -117,20 +138,17 @@ def render_arm_depth(
         return out
     rows = np.arange(r0, r1, stride)
     cols = np.arange(c0, c1, stride)
-    cc, rr = np.meshgrid(cols, rows)
+    dirs, dirs_z = _pixel_rays(K.tobytes(), T_world_cam.tobytes(), H, W)
+    dirs, dirs_z = dirs[r0:r1:stride, c0:c1:stride], dirs_z[r0:r1:stride, c0:c1:stride]
     need = None
     if front.all():
-        need, reach = _rays_needed(u, v, np.asarray(triangles), r0, c0, cc.shape, stride)
+        need, reach = _rays_needed(u, v, np.asarray(triangles), r0, c0, dirs_z.shape, stride)
         if not need.any():
             return out
-        cc, rr, triangles = cc[need], rr[need], np.asarray(triangles)[reach]
-    dc = np.stack(
-        [(cc - K[0, 2]) / K[0, 0], (rr - K[1, 2]) / K[1, 1], np.ones_like(cc, dtype=np.float64)], axis=-1
-    ).reshape(-1, 3)
-    dc /= np.linalg.norm(dc, axis=1, keepdims=True)
-    rays = np.empty((len(dc), 6), np.float32)
+        dirs, dirs_z, triangles = dirs[need], dirs_z[need], np.asarray(triangles)[reach]
+    rays = np.empty((dirs_z.size, 6), np.float32)
     rays[:, :3] = t
-    rays[:, 3:] = dc @ R.T
+    rays[:, 3:] = dirs.reshape(-1, 3)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
         o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
@@ -138,12 +156,98 @@ def render_arm_depth(
     )
     t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
     if need is None:
-        z = (t_hit * dc[:, 2]).astype(np.float32).reshape(len(rows), len(cols))
+        z = (t_hit * dirs_z.ravel()).astype(np.float32).reshape(len(rows), len(cols))
     else:
         z = np.full((len(rows), len(cols)), np.inf, np.float32)
-        z[need] = (t_hit * dc[:, 2]).astype(np.float32)
+        z[need] = (t_hit * dirs_z).astype(np.float32)
     block = np.repeat(np.repeat(z, stride, axis=0), stride, axis=1)[: r1 - r0, : c1 - c0]
     out[r0:r1, c0:c1] = block
+    return out
+
+
+_RASTER_MAX_FRAGMENTS = 1_000_000  # (triangle, pixel) pairs rasterise_depth holds at once (~10 arrays of them)
+
+
+def rasterise_depth(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    shape: tuple[int, int],
+    stride: int = 1,
+) -> np.ndarray:
+    """``render_arm_depth``'s image drawn with a z-buffer instead of raycast: no BVH to build every frame.
+
+    vertices: (V, 3) float, metres, world frame; triangles: (F, 3) int; shape: (H, W). The same grid (every
+    ``stride``-th pixel in the meshes' projected box, upsampled): each triangle is scanned row by row over the
+    grid pixels whose centre its projection covers (both faces), at the camera z-depth where that pixel's ray
+    meets its plane (kept within the triangle's depth range: an edge-on sliver's plane is ill-conditioned).
+    A mesh with a vertex behind the camera, or covering more than ``_RASTER_MAX_FRAGMENTS`` grid pixels
+    counted per triangle (memory), is raycast (``render_arm_depth``).
+    Returns (H, W) float32 camera z-depth in metres, +inf where no mesh is hit.
+    """
+    H, W = shape
+    out = np.full((H, W), np.inf, np.float32)
+    if len(vertices) == 0 or len(triangles) == 0:
+        return out
+    R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
+    vc = (np.asarray(vertices, np.float64) - t) @ R
+    if not (vc[:, 2] > 1e-3).all():
+        return render_arm_depth(vertices, triangles, K, T_world_cam, shape, stride)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    u = fx * vc[:, 0] / vc[:, 2] + cx
+    v = fy * vc[:, 1] / vc[:, 2] + cy
+    c0, c1 = int(np.clip(np.floor(u.min()), 0, W)), int(np.clip(np.ceil(u.max()) + 1, 0, W))
+    r0, r1 = int(np.clip(np.floor(v.min()), 0, H)), int(np.clip(np.ceil(v.max()) + 1, 0, H))
+    if c1 <= c0 or r1 <= r0:
+        return out
+    nr, nc = len(range(r0, r1, stride)), len(range(c0, c1, stride))
+    tri = np.asarray(triangles, np.int64)
+    # each triangle's corners top (t), middle (m), bottom (b) by image row, and the grid rows it spans
+    # (grid row i is image row r0 + i stride)
+    order = np.argsort(v[tri], axis=1, kind="stable")
+    tri = np.take_along_axis(tri, order, axis=1)
+    vt, vb = v[tri[:, 0]], v[tri[:, 2]]
+    ilo = np.maximum(np.ceil((vt - r0) / stride), 0).astype(np.int64)
+    ihi = np.minimum(np.floor((vb - r0) / stride), nr - 1).astype(np.int64)
+    keep = np.nonzero((ihi >= ilo) & (vb > vt))[0]
+    if len(keep) == 0:
+        return out
+    tri, ilo, nrow = tri[keep], ilo[keep], ihi[keep] - ilo[keep] + 1
+    ut, um, ub = u[tri[:, 0]], u[tri[:, 1]], u[tri[:, 2]]
+    vt, vm, vb = v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]]
+    s_tb = (ub - ut) / (vb - vt)  # du / dv along the long edge and the two short ones (0 when flat)
+    s_tm = np.where(vm > vt, (um - ut) / np.where(vm > vt, vm - vt, 1.0), 0.0)
+    s_mb = np.where(vb > vm, (ub - um) / np.where(vb > vm, vb - vm, 1.0), 0.0)
+    f = np.repeat(np.arange(len(tri)), nrow)  # one entry per (triangle, grid row)
+    i = ilo[f] + np.arange(len(f)) - np.repeat(np.cumsum(nrow) - nrow, nrow)
+    y = (r0 + i * stride).astype(np.float64)
+    # the row's span between the long edge and the short edge beside it
+    x_long = ut[f] + (y - vt[f]) * s_tb[f]
+    upper = y < vm[f]
+    x_short = np.where(upper, ut[f] + (y - vt[f]) * s_tm[f], um[f] + (y - vm[f]) * s_mb[f])
+    jlo = np.maximum(np.ceil((np.minimum(x_long, x_short) - c0) / stride), 0).astype(np.int64)
+    jhi = np.minimum(np.floor((np.maximum(x_long, x_short) - c0) / stride), nc - 1).astype(np.int64)
+    ncol = np.maximum(jhi - jlo + 1, 0)
+    if int(ncol.sum()) > _RASTER_MAX_FRAGMENTS:  # meshes covering the image many times over: raycast them
+        return render_arm_depth(vertices, triangles, K, T_world_cam, shape, stride)
+    px = np.repeat(np.arange(len(f)), ncol)  # one entry per (triangle, grid pixel)
+    if len(px) == 0:
+        return out
+    j = jlo[px] + np.arange(len(px)) - np.repeat(np.cumsum(ncol) - ncol, ncol)
+    fp = f[px]
+    # the pixel's ray ((x - cx) / fx, (y - cy) / fy, 1) meets the triangle's plane n . p = n . p0 at z
+    p0, p1, p2 = vc[tri[:, 0]], vc[tri[:, 1]], vc[tri[:, 2]]
+    nrm = np.cross(p1 - p0, p2 - p0)
+    off = nrm[:, 0] * p0[:, 0] + nrm[:, 1] * p0[:, 1] + nrm[:, 2] * p0[:, 2]
+    zmin = np.minimum(np.minimum(p0[:, 2], p1[:, 2]), p2[:, 2])
+    zmax = np.maximum(np.maximum(p0[:, 2], p1[:, 2]), p2[:, 2])
+    den = nrm[fp, 0] * ((c0 + j * stride - cx) / fx) + nrm[fp, 1] * ((y[px] - cy) / fy) + nrm[fp, 2]
+    z = np.clip(off[fp] / np.where(den != 0, den, 1e-300), zmin[fp], zmax[fp])
+    grid = np.full(nr * nc, np.inf)
+    np.minimum.at(grid, i[px] * nc + j, z)
+    block = np.repeat(np.repeat(grid.reshape(nr, nc).astype(np.float32), stride, axis=0), stride, axis=1)
+    out[r0:r1, c0:c1] = block[: r1 - r0, : c1 - c0]
     return out
 
 
@@ -165,9 +269,10 @@ def render_arm_mask(
     ``depth`` the grown silhouette is returned; with measured depth (H, W) float metres a pixel is
     arm when it is inside the grown silhouette and its measured depth is missing, within
     ``margin_m`` of, or behind the rendered arm (an object in front of the arm survives).
+    The silhouette and depth are ``rasterise_depth``'s (``render_arm_depth``'s image without its BVH).
     Returns (H, W) bool.
     """
-    arm = render_arm_depth(vertices, triangles, K, T_world_cam, shape, stride)
+    arm = rasterise_depth(vertices, triangles, K, T_world_cam, shape, stride)
     if margin_px > 0:
         k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin_px + 1, 2 * margin_px + 1))
         arm = cv2.erode(arm, k)

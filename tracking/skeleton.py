@@ -139,7 +139,8 @@ def skeleton_graph(mask: np.ndarray, spur_px: float, merge_px: float, min_compon
             break
         alive &= ~drop
         edges = edges[alive[edges[:, 0]] & alive[edges[:, 1]]]
-    deg, br = _branches(rc, alive, edges)
+    else:  # pruned six times: the branches of what is left (after a break they are those of the last pass)
+        deg, br = _branches(rc, alive, edges)
     node_pix = np.nonzero(alive & (deg != 2) & (deg > 0))[0]
     if len(node_pix) == 0:
         return empty

@@ -32,25 +32,44 @@ def edge_colouring(edges: np.ndarray, n_vertices: int) -> list[np.ndarray]:
     return [np.nonzero(colour == c)[0] for c in range(int(colour.max()) + 1)]
 
 
+def edge_plan(
+    edges: np.ndarray, rest: np.ndarray, inv_mass: np.ndarray, classes: list[np.ndarray]
+) -> list[tuple[np.ndarray, ...]]:
+    """What ``project_edges`` needs of each colour class and does not change between sweeps: per class of C
+    edges (ends (2C,) int64: the first endpoints then the second ones, w (2, C, 1) their inverse masses, the
+    second ones negated, wsum (C,), movable (C,) bool wsum > 0, rest (C,) m), so a sweep indexes only the
+    keypoints, once."""
+    plan = []
+    for cls in classes:
+        i, j = edges[cls, 0], edges[cls, 1]
+        wi, wj = inv_mass[i], inv_mass[j]
+        wsum = wi + wj
+        plan.append((np.concatenate([i, j]), np.stack([wi, -wj])[:, :, None], wsum, wsum > 0, rest[cls]))
+    return plan
+
+
 def project_edges(
-    X: np.ndarray, edges: np.ndarray, rest: np.ndarray, inv_mass: np.ndarray, classes: list[np.ndarray]
+    X: np.ndarray, edges: np.ndarray, rest: np.ndarray, inv_mass: np.ndarray, classes: list[np.ndarray],
+    plan: list[tuple[np.ndarray, ...]] | None = None,
 ) -> None:
     """One Gauss-Seidel sweep of edge-length projection, in place.
 
     X: (N, 3) float64 m; edges: (E, 2) int; rest: (E,) m; inv_mass: (N,) 1 free, 0 fixed (anchor).
     Each edge moves its free endpoints along the edge to length ``rest``, split by inverse mass
-    (half each when both are free, as projective dynamics eq. 8).
+    (half each when both are free, as projective dynamics eq. 8). plan: ``edge_plan`` of these
+    arguments when the caller sweeps many times (then edges, rest, inv_mass and classes are not read).
     """
-    for cls in classes:
-        i, j = edges[cls, 0], edges[cls, 1]
-        wi, wj = inv_mass[i], inv_mass[j]
-        wsum = wi + wj
-        d = X[j] - X[i]
-        L = np.linalg.norm(d, axis=1)
-        ok = (wsum > 0) & (L > 1e-12)
-        s = np.where(ok, (L - rest[cls]) / np.where(ok, L * wsum, 1.0), 0.0)[:, None] * d
-        X[i] += wi[:, None] * s
-        X[j] -= wj[:, None] * s
+    for ends, w, wsum, movable, r in plan if plan is not None else edge_plan(edges, rest, inv_mass, classes):
+        C = len(r)
+        P = X[ends]  # a class's edges share no keypoint: its first endpoints, then its second ones
+        d = P[C:] - P[:C]
+        L = np.sqrt(np.add.reduce(d * d, axis=1))  # np.linalg.norm(d, axis=1), without its checks
+        ok = movable & (L > 1e-12)
+        if ok.all():
+            s = ((L - r) / (L * wsum))[:, None] * d
+        else:
+            s = np.where(ok, (L - r) / np.where(ok, L * wsum, 1.0), 0.0)[:, None] * d
+        X[ends] = P + (w * s).reshape(2 * C, 3)  # first endpoints + wi s, second ones - wj s
 
 
 def project_to_cloud(X: np.ndarray, tree: cKDTree, k: int, max_slide_m: float) -> np.ndarray:
@@ -68,7 +87,7 @@ def project_to_cloud(X: np.ndarray, tree: cKDTree, k: int, max_slide_m: float) -
     k = min(k, tree.n)
     _, nn = tree.query(X, k=k)
     nb = pts[nn.reshape(len(X), k)]
-    c = nb - nb.mean(axis=1, keepdims=True)
+    c = nb - np.add.reduce(nb, axis=1, keepdims=True) / k  # nb.mean(axis=1), without its checks
     lam, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", c, c))
     keep = lam >= 0.1 * lam[:, -1:]
     p = nb[:, 0]
@@ -116,16 +135,21 @@ def solve_keypoints(
         inv_mass[hard_idx] = 0.0
         X[anchor_idx] = anchor_pos
     free = inv_mass > 0
+    all_free = bool(free.all())
     if classes is None:
         classes = edge_colouring(edges, N)
+    plan = edge_plan(edges, rest, inv_mass, classes)
     tree = None
     if params.use_cloud_projection:
         tree = cloud if isinstance(cloud, cKDTree) else (cKDTree(cloud) if len(cloud) else None)
     for _ in range(iterations):
         if params.use_edge_projection and len(edges):
-            project_edges(X, edges, rest, inv_mass, classes)
+            project_edges(X, edges, rest, inv_mass, classes, plan)
         if tree is not None:
-            X[free] = project_to_cloud(X[free], tree, params.surface_k, params.surface_slide_m)
+            if all_free:  # X is this function's own array: rebinding it is the in-place update
+                X = project_to_cloud(X, tree, params.surface_k, params.surface_slide_m)
+            else:
+                X[free] = project_to_cloud(X[free], tree, params.surface_k, params.surface_slide_m)
         if use_anchors:
             X[soft_idx] += soft_w * (soft_pos - X[soft_idx])
             X[hard_idx] = hard_pos
