@@ -32,7 +32,7 @@ which ``trackdeform eval`` cannot show on sequences without ground truth.
 
 The default set (``--set all``) is the five-sequence development set plus the variants below (camera
 from the side and from above, rope lengths 0.8-1.0 m, radii 4-7 mm, colours, the three speeds, other
-seeds); generating it the first time takes ~12 min and ~2 GB, tracking and scoring it ~4 min here.
+seeds); generating it the first time takes ~16 min and ~3 GB, tracking and scoring it ~6 min here.
 """
 
 from __future__ import annotations
@@ -60,6 +60,7 @@ DEV: list[dict[str, Any]] = [
 # Variants: other seeds, views, sizes, colours and speeds (camera = eye x,y,z, target x,y,z in the world, m).
 SIDE = [1.05, 0.55, 0.55, 0.45, -0.45, 0.20]
 ABOVE = [0.95, -0.45, 1.45, 0.45, -0.45, 0.10]
+OBLIQUE = [1.35, -0.05, 0.85, 0.50, -0.45, 0.15]
 VARIANTS: list[dict[str, Any]] = [
     dict(name="rope_side_long_thin", obj="rope", speed="medium", seconds=5, seed=11, camera=SIDE, length=1.0,
          radius=0.004, rgb=[0.15, 0.3, 0.85]),
@@ -72,6 +73,12 @@ VARIANTS: list[dict[str, Any]] = [
          radius=0.005, rgb=[0.8, 0.2, 0.6]),
     dict(name="cloth_side_fast", obj="cloth", speed="fast", seconds=5, seed=16, camera=SIDE),
     dict(name="cloth_above_slow", obj="cloth", speed="slow", seconds=6, seed=17, camera=ABOVE),
+    dict(name="cloth_medium_s41", obj="cloth", speed="medium", seconds=6, seed=41),
+    dict(name="cloth_fast_cam2", obj="cloth", speed="fast", seconds=5, seed=42, camera=OBLIQUE),
+    dict(name="bdlo_slow_s43", obj="bdlo", speed="slow", seconds=6, seed=43, length=0.85, radius=0.005,
+         branch_len=0.22),
+    dict(name="rope_medium_cam2", obj="rope", speed="medium", seconds=6, seed=44, camera=OBLIQUE, length=0.95,
+         radius=0.0065, rgb=[0.7, 0.3, 0.1]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
