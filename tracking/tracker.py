@@ -407,8 +407,10 @@ class Tracker:
         """Score a solution, update the state and the loss-of-track counter.
 
         A frame is bad without a cloud, when the keypoints jumped (solution discarded) or when Abs or
-        CD exceed their thresholds (solution kept as the next warm start, flagged DEGRADED); a grid left
-        tangled (``tangled`` cells) is kept as the warm start too, flagged DEGRADED.
+        CD exceed their thresholds (solution kept as the next warm start, flagged DEGRADED). A grid left
+        tangled (``tangled`` cells) is kept as the warm start too and flagged DEGRADED, but does not count
+        towards a loss: the next frame tries the repair again, in the track's own topology, which a
+        re-initialisation would replace (new rest lengths, keypoints renumbered).
         """
         assert self.topology is not None
         p = self.params
@@ -416,16 +418,16 @@ class Tracker:
         n_points = cloud.n if isinstance(cloud, cKDTree) else len(cloud)
         cd_mm = chamfer_mm(X, cloud) if n_points else float("inf")
         jump = self.keypoints is not None and bool(np.median(np.linalg.norm(X - self.keypoints, axis=1)) > p.max_jump_m)
-        bad = force_bad or tangled > 0 or jump or abs_mm > 1e3 * p.max_edge_rmse_m or cd_mm > 1e3 * p.max_chamfer_m
+        bad = force_bad or jump or abs_mm > 1e3 * p.max_edge_rmse_m or cd_mm > 1e3 * p.max_chamfer_m
         self._bad = self._bad + 1 if bad else 0
         if not (force_bad or jump):
             if self.keypoints is not None and self.keypoints is not X:
                 self._velocity = X - self.keypoints
             self.keypoints = X
-        if not bad:
+        if not bad and not tangled:
             self._history.append(X)
         smoothed = np.mean(np.stack(self._history), axis=0) if self._history else X
-        status = TrackStatus.OK if not bad else TrackStatus.DEGRADED
+        status = TrackStatus.OK if not (bad or tangled) else TrackStatus.DEGRADED
         grasp = self.grasp_idx.copy()
         if self._bad >= p.lost_after_frames:
             status = TrackStatus.LOST
