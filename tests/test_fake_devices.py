@@ -321,3 +321,28 @@ def test_streaming_camera_captures_on_time_while_the_reader_is_busy():
     finally:
         cam.close()
     assert not cam.streaming and proc.poll() is not None
+
+
+def test_render_process_closed_by_another_thread_mid_send_is_a_device_error() -> None:
+    """The camera closing while its capture thread sends a frame: the connection's handle is gone mid-write
+    (multiprocessing raises TypeError there); the sender gets a recoverable DeviceError, not a traceback."""
+    from drivers.fake.render_process import RenderProcess
+
+    class Closed:
+        def send(self, obj: object) -> None:
+            raise TypeError("'NoneType' object cannot be interpreted as an integer")
+
+        def poll(self, timeout: float) -> bool:
+            return True
+
+        def recv(self) -> object:
+            raise TypeError("'NoneType' object cannot be interpreted as an integer")
+
+    rp = RenderProcess.__new__(RenderProcess)
+    rp.name, rp._proc, rp._tx, rp._rx = "camera cam0", None, Closed(), Closed()
+    with pytest.raises(DeviceError, match="closed") as e:
+        rp._send(("frame",))
+    assert e.value.recoverable
+    rp._proc = object()  # open: a TypeError is a bug, not a close, and is raised
+    with pytest.raises(TypeError):
+        rp._send(("frame",))

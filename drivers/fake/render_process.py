@@ -66,6 +66,10 @@ class RenderProcess:
             self._tx.send(obj)
         except (OSError, ValueError) as e:
             self._fail(f"cannot reach it ({e})")
+        except TypeError:  # the connection was closed by another thread mid-send (the camera closing)
+            if self._proc is not None:
+                raise
+            raise DeviceError(f"{self.name}: render process closed", recoverable=True) from None
 
     def _fail(self, why: str) -> None:
         """Close, then raise a recoverable DeviceError naming the process and its exit code."""
@@ -84,6 +88,10 @@ class RenderProcess:
             msg = self._rx.recv()
         except (EOFError, OSError) as e:
             self._fail(f"exited ({type(e).__name__})")
+        except TypeError:  # closed by another thread while waiting (the camera closing)
+            if self._proc is not None:
+                raise
+            raise DeviceError(f"{self.name}: render process closed", recoverable=True) from None
         if msg[0] == "error":
             self._fail(f"failed: {msg[1]}")
         return msg
