@@ -92,6 +92,10 @@ class TrackingParams:
         keypoint after each solver iteration (1: fixed there, the paper's hard constraint): their detections
         carry the depth noise and contour error that a fixed anchor passes on to its edges. A 1D object's
         tips and grasped keypoints are always fixed.
+      relift_span_tol: a cloth grid folded over itself is re-lifted from the frame's contour only when the
+        fresh grid's edges add up to the rest lengths within this fraction (the contour outlines the whole
+        cloth and nothing else; measured: 0.95-1.03 on twisted test-bed cloths, 0.84-0.93 over a fold in the
+        project's simulator, whose hidden lower layer the contour cannot show, up to 1.23 as it closes).
       grasp_gate_m: a TCP farther than this from every keypoint holds nothing, m.
       causal_window, symmetric_window: moving-average windows, frames.
       min_object_points: fewer segmented points than this is a bad frame.
@@ -168,6 +172,7 @@ class TrackingParams:
     anchor_edge_tol: float = 0.15
     anchor_neighbour_slack_m: float = 0.02
     anchor_stiffness: float = 0.2
+    relift_span_tol: float = 0.06
     grasp_gate_m: float = 0.05
     causal_window: int = 3
     symmetric_window: int = 5
