@@ -15,6 +15,7 @@ from scipy.optimize import linear_sum_assignment
 
 from tracking.anchors import contour_3d, lift_grid
 from tracking.init import Topology
+from tracking.metrics import edge_lengths
 from tracking.params import TrackingParams
 
 
@@ -71,13 +72,12 @@ def relift_grid(
     if ct is None:
         return None
     X0 = lift_grid(ct, cloud, rows, cols)
-    e = topology.edges
-    span = np.linalg.norm(X0[e[:, 0]] - X0[e[:, 1]], axis=1).sum() / topology.rest.sum()
+    span = edge_lengths(X0, topology.edges).sum() / topology.rest.sum()
     if abs(span - 1.0) > params.relift_span_tol:
         return None
-    costs = [float(np.linalg.norm(X0[p] - X_prev, axis=1).sum()) for p in grid_symmetries(rows, cols)]
-    best = grid_symmetries(rows, cols)[int(np.argmin(costs))]
-    X = X0[best]
+    syms = grid_symmetries(rows, cols)
+    costs = [float(np.linalg.norm(X0[p] - X_prev, axis=1).sum()) for p in syms]
+    X = X0[syms[int(np.argmin(costs))]]
     if held is not None and len(held):  # a held corner is at its gripper
         corners = np.array([0, cols - 1, (rows - 1) * cols, rows * cols - 1])
         hp = np.asarray(held, np.float64).reshape(-1, 3)
