@@ -559,11 +559,12 @@ def list_versions(session: Path) -> list[str]:
 
 
 def read_version(session: Path, version: str, episodes: list[Path]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """frame number -> (final (N, 3), raw (N, 3)) m of the episodes' files in a version (missing ones left out)."""
+    """frame number -> (final (N, 3), raw (N, 3)) m of the episodes' files in a version; missing and incomplete
+    files (a retrack killed mid-write, a disk that filled up: retrack tracks them again) are left out."""
     out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for e in episodes:
         path = Path(session) / VERSIONS_DIR / version / (Path(e).stem + ".npz")
-        if not path.is_file():
+        if not npz_complete(path, Path(session) / Path(e).name):
             continue
         with np.load(path) as z:
             fn, kp, raw = z["frame_numbers"], z["keypoints"], z["raw"]

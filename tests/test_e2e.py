@@ -106,7 +106,7 @@ def test_demo_with_tracking_worker_records_keypoints(tmp_path: Path, port: int) 
     # the set as a whole is good: one frame of a real-time run can be a transient (a rope's last frame reached
     # 13.9 mm in 1 of 2 runs before and after the tracker's latest changes)
     abs_mm = [m["abs_mm"] for m in tracked if m["abs_mm"] is not None]
-    assert abs_mm and float(np.median(abs_mm)) < 10.0 and np.mean(np.array(abs_mm) < 10.0) > 0.8
+    assert abs_mm and float(np.median(abs_mm)) < 10.0 and np.mean(np.array(abs_mm) < 10.0) > 0.8, abs_mm
 
 
 def test_offline_track_writes_reference_npz(demo_10s_track: tuple[Path, dict]) -> None:

@@ -18,7 +18,7 @@ from orchestrator.final import TMP_SUFFIX, FinalKeypoints, pending_runs, rewrite
 from orchestrator.landing import Manifest
 from orchestrator.recorder import EpisodeWriter
 from tdrecord import DatasetError, iter_episodes, load_episode, read_manifest
-from tests.conftest import NO_LIVE_INIT, REPO, make_frame, mock_yaml
+from tests.conftest import REPO, make_frame
 
 N = 4
 EDGES = [[0, 1], [1, 2], [2, 3]]
@@ -235,22 +235,12 @@ def test_inspect_stats_and_piping_into_head(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_sim_time_demo_every_frame_has_final_keypoints_and_resumes(tmp_path: Path, port: int) -> None:
-    """A demo recorded with final tracking off, then resumed with it on: the first session's run is tracked on
-    resume, the new one after it ends; every frame of every episode has final keypoints."""
-    out = tmp_path / "demo"
-    # the live initialisation is tested on its own (test_liveinit.py); here the worker initialises on the run
-    off = mock_yaml(tmp_path / "mock_nofinal.yaml", {**NO_LIVE_INIT, "tracking.final": False})
-    on = mock_yaml(tmp_path / "mock_final.yaml", NO_LIVE_INIT)
-    assert load_config(off).tracking.final is False and load_config(on).tracking.final is True
-    base = [sys.executable, "-m", "orchestrator.cli", "demo", "--sim-time", "--seconds", "5", "--out", str(out),
-            "--port", str(port)]
-    first = subprocess.run([*base, "--config", str(off)], capture_output=True, text=True, timeout=600, cwd=REPO)
-    assert first.returncode == 0, first.stderr[-3000:]
-    assert all(load_episode(p, images=False).keypoints_final is None for p in out.glob("episode_*.mcap"))
-    second = subprocess.run([*base, "--config", str(on)], capture_output=True, text=True, timeout=900, cwd=REPO)
-    assert second.returncode == 0, second.stderr[-3000:]
-    assert "final keypoints  : 2 run(s)" in second.stdout, second.stdout
+def test_sim_time_demo_every_frame_has_final_keypoints_and_resumes(demo_final_resumed: tuple[Path, str]) -> None:
+    """A demo recorded with final tracking off, then resumed with it on (the shared fixture; the first session's
+    episodes had no final keypoints): the first session's run is tracked on resume, the new one after it ends;
+    every frame of every episode has final keypoints."""
+    out, second_stdout = demo_final_resumed
+    assert "final keypoints  : 2 run(s)" in second_stdout, second_stdout
     files = sorted(out.glob("episode_*.mcap"))
     assert len(files) >= 2
     for p in files:

@@ -11,7 +11,6 @@ import json
 import os
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +18,7 @@ import pytest
 
 from orchestrator.config import ColorOutputConfig, DepthOutputConfig
 from orchestrator.recorder import EpisodeWriter
-from tests.conftest import NO_LIVE_INIT, REPO, make_frame, mock_yaml
+from tests.conftest import REPO, make_frame
 
 TOOL = Path(os.environ.get("TRACKDEFORM_FOXGLOVE_CHECK", REPO.parent / "shared" / "tools" / "foxglove-check"))
 
@@ -77,15 +76,9 @@ def test_every_channel_of_a_written_episode_parses(tmp_path: Path, checker: Path
 
 
 @pytest.mark.slow
-def test_sim_time_demo_episodes_pass(tmp_path: Path, checker: Path, port: int) -> None:
-    out = tmp_path / "demo"
-    conf = mock_yaml(tmp_path / "mock.yaml", NO_LIVE_INIT)  # live keypoints from the run's own initialisation
-    proc = subprocess.run(
-        [sys.executable, "-m", "orchestrator.cli", "demo", "--sim-time", "--seconds", "5", "--out", str(out),
-         "--port", str(port), "--config", str(conf)],
-        capture_output=True, text=True, timeout=600, cwd=REPO,
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
+def test_sim_time_demo_episodes_pass(checker: Path, demo_final_resumed: tuple[Path, str]) -> None:
+    """The shared simulated-time demo (live keypoints, then final ones written into every episode) opens."""
+    out = demo_final_resumed[0]
     files = sorted(out.glob("episode_*.mcap"))
     assert files
     report = _check(checker, *files)

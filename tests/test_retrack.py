@@ -24,6 +24,9 @@ from orchestrator.retrack import (
     npz_complete,
     open_version,
     read_progress_journal,
+    read_version,
+    run_done,
+    session_runs,
 )
 from tdrecord import FrameSource, Sequence, read_reference_npz
 from tests.conftest import REPO, cli, copy_session, make_frame
@@ -121,13 +124,12 @@ def test_a_killed_retrack_continues_where_it_stopped(tracked) -> None:
     assert json.loads(r.stdout)["tracked"] == 1
     _assert_same(_version_arrays(session, "killed"), want)
 
-    # a torn result file (e.g. a disk filled up) is tracked again
+    # a torn result file (e.g. a disk filled up) makes its run not done: retrack tracks it again (as above)
+    (task,) = session_runs(session, load_config(DEFAULT_CONFIG).tracking)
+    assert run_done(folder, task)
     torn = folder / "episode_000001.npz"
     torn.write_bytes(torn.read_bytes()[:1000])
-    assert not npz_complete(torn, session / torn.with_suffix(".mcap").name)
-    r = _cli("retrack", str(session), "--workers", "1", "--version", "killed", "--json")
-    assert r.returncode == 0 and json.loads(r.stdout)["tracked"] == 1, r.stderr[-3000:]
-    _assert_same(_version_arrays(session, "killed"), want)
+    assert not npz_complete(torn, session / torn.with_suffix(".mcap").name) and not run_done(folder, task)
 
 
 @pytest.mark.slow
@@ -181,6 +183,22 @@ def test_npz_complete_checks_keys_shapes_and_the_episode(tmp_path: Path) -> None
     path.write_bytes(b"PK\x03\x04 torn")
     assert not npz_complete(path, episode)
     assert not npz_complete(tmp_path / "missing.npz", episode)
+
+
+def test_read_version_leaves_out_torn_and_stale_files(tmp_path: Path) -> None:
+    """The report reads a version folder a killed retrack or a full disk may have left a torn file in."""
+    folder = tmp_path / "keypoints" / "v"
+    folder.mkdir(parents=True)
+    for k in range(3):
+        (tmp_path / f"episode_00000{k}.mcap").write_bytes(b"x" * 100)
+        np.savez(folder / f"episode_00000{k}.npz", frame_numbers=np.arange(2) + 2 * k,
+                 keypoints=np.full((2, 3, 3), k), raw=np.full((2, 3, 3), k), edges=np.array([[0, 1], [1, 2]]),
+                 rest_lengths=np.ones(2), grasp_indices=np.zeros((2, 2), int), episode_bytes=np.int64(100))
+    torn = folder / "episode_000001.npz"
+    torn.write_bytes(torn.read_bytes()[:200])
+    (tmp_path / "episode_000002.mcap").write_bytes(b"x" * 120)  # recovered since: its result is stale
+    got = read_version(tmp_path, "v", sorted(tmp_path.glob("episode_*.mcap")))
+    assert sorted(got) == [0, 1] and (got[1][0] == 0).all()
 
 
 def _seq(frames: list, with_states: bool, start: int) -> Sequence:
