@@ -66,30 +66,6 @@ def _assert_same(got: dict[str, np.ndarray], want: dict[str, np.ndarray]) -> Non
 
 
 @pytest.mark.slow
-def test_two_local_workers_give_the_keypoints_of_track(tracked) -> None:
-    session, want = tracked
-    r = _cli("retrack", str(session), "--workers", "2", "--version", "local2", "--json")
-    assert r.returncode == 0, r.stderr[-3000:]
-    figures = json.loads(r.stdout)
-    assert figures["tracked"] == 1 and figures["frames"] == len(want["raw"]) and not figures["failed"]
-    got = _version_arrays(session, "local2")
-    _assert_same(got, want)
-    assert got["grasp_indices"].shape == (len(want["raw"]), 2)
-    info = json.loads((session / "keypoints" / "local2" / "version.json").read_text())
-    assert info["tracking"]["final_window"] == 5 and info["software"]["package"]
-    runs = [x for x in read_progress_journal(session / "keypoints" / "local2" / JOURNAL_FILE) if x["type"] == "run"]
-    assert [x["outcome"] for x in runs] == ["done"] and runs[0]["params"]["n_keypoints_1d"] == 20
-    # the raw streams are untouched: only the keypoints folder was added
-    assert {p.name for p in session.iterdir()} >= {"episode_000000.mcap", "episode_000001.mcap", "keypoints"}
-
-    # a rerun skips the complete run and rewrites nothing
-    stamps = {f: f.stat().st_mtime_ns for f in (session / "keypoints" / "local2").glob("*.npz")}
-    r = _cli("retrack", str(session), "--version", "local2", "--json")
-    assert r.returncode == 0 and json.loads(r.stdout)["already_done"] == 1, r.stderr[-2000:]
-    assert stamps == {f: f.stat().st_mtime_ns for f in stamps}
-
-
-@pytest.mark.slow
 @pytest.mark.skipif(not HAVE_RAY, reason="ray is not installed (pip install 'trackdeform3d[cluster]')")
 def test_ray_on_a_local_cluster_gives_the_keypoints_of_track(tracked) -> None:
     session, want = tracked
@@ -100,7 +76,9 @@ def test_ray_on_a_local_cluster_gives_the_keypoints_of_track(tracked) -> None:
 
 
 @pytest.mark.slow
-def test_a_killed_retrack_continues_where_it_stopped(tracked) -> None:
+def test_a_killed_retrack_continues_where_it_stopped_with_the_keypoints_of_track(tracked) -> None:
+    """Killed mid-run, then resumed with 2 local workers: the keypoints of ``trackdeform track``; a rerun of the
+    complete version rewrites nothing; a torn result file makes its run not done."""
     session, want = tracked
     folder = session / "keypoints" / "killed"
     env = {**os.environ, "PYTHONPATH": str(REPO)}
@@ -119,10 +97,26 @@ def test_a_killed_retrack_continues_where_it_stopped(tracked) -> None:
         proc.wait(timeout=30)
         proc.stderr.close()
     assert not list(folder.glob("*.npz")), "a run was written before the kill"
-    r = _cli("retrack", str(session), "--workers", "1", "--version", "killed", "--json")
+
+    r = _cli("retrack", str(session), "--workers", "2", "--version", "killed", "--json")
     assert r.returncode == 0, r.stderr[-3000:]
-    assert json.loads(r.stdout)["tracked"] == 1
-    _assert_same(_version_arrays(session, "killed"), want)
+    figures = json.loads(r.stdout)
+    assert figures["tracked"] == 1 and figures["frames"] == len(want["raw"]) and not figures["failed"]
+    got = _version_arrays(session, "killed")
+    _assert_same(got, want)
+    assert got["grasp_indices"].shape == (len(want["raw"]), 2)
+    info = json.loads((folder / "version.json").read_text())
+    assert info["tracking"]["final_window"] == 5 and info["software"]["package"]
+    runs = [x for x in read_progress_journal(folder / JOURNAL_FILE) if x["type"] == "run"]
+    assert [x["outcome"] for x in runs] == ["done"] and runs[0]["params"]["n_keypoints_1d"] == 20
+    # the raw streams are untouched: only the keypoints folder was added
+    assert {p.name for p in session.iterdir()} >= {"episode_000000.mcap", "episode_000001.mcap", "keypoints"}
+
+    # a rerun skips the complete run and rewrites nothing
+    stamps = {f: f.stat().st_mtime_ns for f in folder.glob("*.npz")}
+    r = _cli("retrack", str(session), "--version", "killed", "--json")
+    assert r.returncode == 0 and json.loads(r.stdout)["already_done"] == 1, r.stderr[-2000:]
+    assert stamps == {f: f.stat().st_mtime_ns for f in stamps}
 
     # a torn result file (e.g. a disk filled up) makes its run not done: retrack tracks it again (as above)
     (task,) = session_runs(session, load_config(DEFAULT_CONFIG).tracking)
