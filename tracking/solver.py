@@ -72,28 +72,48 @@ def project_edges(
         X[ends] = P + (w * s).reshape(2 * C, 3)  # first endpoints + wi s, second ones - wj s
 
 
-def project_to_cloud(X: np.ndarray, tree: cKDTree, k: int, max_slide_m: float) -> np.ndarray:
+def extent_projectors(nb: np.ndarray) -> np.ndarray:
+    """Projectors (n, 3, 3) onto the local extent of neighbourhoods nb (n, k, 3) m: the span of their principal
+    directions whose variance is at least 10 % of the largest (a surface's tangent plane, a line's tangent)."""
+    c = nb - np.add.reduce(nb, axis=1, keepdims=True) / nb.shape[1]  # nb.mean(axis=1), without its checks
+    lam, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", c, c))
+    keep = lam >= 0.1 * lam[:, -1:]
+    return np.einsum("nij,nj,nkj->nik", vec, keep, vec)
+
+
+def project_to_cloud(
+    X: np.ndarray, tree: cKDTree, k: int, max_slide_m: float, cache: dict[str, np.ndarray] | None = None
+) -> np.ndarray:
     """Project points X (n, 3) m onto the cloud in the tree -> (n, 3) float64 m.
 
     k <= 1: the nearest cloud point (the paper). Otherwise the nearest point plus the offset to X
-    restricted to the local extent of the cloud (principal directions of the k nearest points whose
-    variance is at least 10 % of the largest: the tangent plane of a surface, the tangent of a line)
-    and clamped to ``max_slide_m``; keypoints then slide below the cloud's point spacing instead of
-    sticking to voxel centres.
+    restricted to the local extent of the cloud (``extent_projectors`` of the k nearest points) and
+    clamped to ``max_slide_m``; keypoints then slide below the cloud's point spacing instead of
+    sticking to voxel centres. cache: a dict the caller passes to every call of one solve (the same
+    points X, moving): a point's projector is computed again only when its k nearest cloud points change.
     """
     pts = tree.data
     if k <= 1:
         return pts[tree.query(X)[1]]
     k = min(k, tree.n)
     _, nn = tree.query(X, k=k)
-    nb = pts[nn.reshape(len(X), k)]
-    c = nb - np.add.reduce(nb, axis=1, keepdims=True) / k  # nb.mean(axis=1), without its checks
-    lam, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", c, c))
-    keep = lam >= 0.1 * lam[:, -1:]
+    nn = nn.reshape(len(X), k)
+    nb = pts[nn]
+    prev = cache.get("nn") if cache is not None else None
+    members = np.sort(nn, axis=1)  # a projector depends on the set of neighbours, not their order
+    if prev is not None and prev.shape == members.shape:
+        proj = cache["projectors"]
+        redo = np.nonzero((members != prev).any(axis=1))[0]
+        if len(redo):
+            proj = proj.copy()
+            proj[redo] = extent_projectors(nb[redo])
+    else:
+        proj = extent_projectors(nb)
+    if cache is not None:
+        cache["nn"], cache["projectors"] = members, proj
     p = nb[:, 0]
-    coef = np.einsum("nk,nkj->nj", X - p, vec) * keep
-    off = np.einsum("nj,nkj->nk", coef, vec)
-    n = np.linalg.norm(off, axis=1, keepdims=True)
+    off = np.einsum("nj,nij->ni", X - p, proj)
+    n = np.sqrt(np.add.reduce(off * off, axis=1))[:, None]
     off *= np.minimum(1.0, max_slide_m / np.maximum(n, 1e-12))
     return p + off
 
@@ -142,14 +162,15 @@ def solve_keypoints(
     tree = None
     if params.use_cloud_projection:
         tree = cloud if isinstance(cloud, cKDTree) else (cKDTree(cloud) if len(cloud) else None)
+    cache: dict[str, np.ndarray] = {}  # the cloud projection's local extents, reused while the neighbours stay
     for _ in range(iterations):
         if params.use_edge_projection and len(edges):
             project_edges(X, edges, rest, inv_mass, classes, plan)
         if tree is not None:
             if all_free:  # X is this function's own array: rebinding it is the in-place update
-                X = project_to_cloud(X, tree, params.surface_k, params.surface_slide_m)
+                X = project_to_cloud(X, tree, params.surface_k, params.surface_slide_m, cache)
             else:
-                X[free] = project_to_cloud(X[free], tree, params.surface_k, params.surface_slide_m)
+                X[free] = project_to_cloud(X[free], tree, params.surface_k, params.surface_slide_m, cache)
         if use_anchors:
             X[soft_idx] += soft_w * (soft_pos - X[soft_idx])
             X[hard_idx] = hard_pos
