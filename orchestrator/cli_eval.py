@@ -16,13 +16,15 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from orchestrator.config import DEFAULT_CONFIG
-from orchestrator.offline import Variant, track_variants
 from orchestrator.progress import Progress
+
+if TYPE_CHECKING:  # the tracker (open3d and the rest) loads when a command runs, not with the CLI
+    from orchestrator.offline import Variant
 
 TRACKED = ("init", "tracking", "degraded")
 ABLATIONS: dict[str, dict[str, bool]] = {
@@ -123,6 +125,7 @@ def _object_name(c: Capture) -> str:
 def evaluate_variants(caps: list[Capture], config: Any, make: Callable[[Any], dict[str, Variant]],
                       max_frames: int | None, progress: Progress) -> dict[str, dict[str, Scores]]:
     """{category: {variant: pooled Scores}} of every capture tracked with every variant in lockstep."""
+    from orchestrator.offline import track_variants
     from orchestrator.worker import tracking_params
     from tdcommon.objects import DIMENSION
 
@@ -145,11 +148,14 @@ def evaluate_variants(caps: list[Capture], config: Any, make: Callable[[Any], di
 
 def ablation_variants(params: Any) -> dict[str, Variant]:
     """The paper's Table II: the full method and each constraint switched off in the per-frame solve."""
+    from orchestrator.offline import Variant
+
     return {name: Variant(params, replace(params, **off) if off else None) for name, off in ABLATIONS.items()}
 
 
 def baseline_variants(params: Any, beta_m: float = 0.05, lam: float = 2.0) -> dict[str, Variant]:
     """The full method beside CPD and nearest-neighbour tracking, with the same segmentation and initialisation."""
+    from orchestrator.offline import Variant
     from tracking.baselines import BaselineTracker
 
     return {
@@ -163,6 +169,7 @@ def init_consistency(caps: list[Capture], config: Any, max_frames: int | None, p
     """The paper's Table III: initialise each capture from scratch; per-keypoint spread over the captures
     (RMS distance to the mean position, and the largest distance), with Abs / CD / F<10 of the
     initialisation frames. Every capture must be of one category and keypoint count."""
+    from orchestrator.offline import Variant, track_variants
     from orchestrator.worker import tracking_params
     from tdcommon.objects import DIMENSION
     from tracking.metrics import percent_below

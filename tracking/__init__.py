@@ -13,41 +13,64 @@ Typical use by a worker (all arrays SI, world frame z up, camera frame OpenCV):
     res = tracker.step(seg.points, tcp=tcp, gripper_closed=closed)   # res.status LOST -> initialise again
 """
 
-from tracking.anchors import BOUNDARY, CORNER, JUNCTION, LEAF, detect_anchors_1d, detect_anchors_2d
-from tracking.classify import ObjectClass, classify_object
-from tracking.geometry import depth_to_points, farthest_point_sampling, project_points
-from tracking.init import Initialisation, InitialisationError, Topology, initialise
-from tracking.metrics import (
-    anchor_error_mm,
-    chamfer_mm,
-    edge_rmse_mm,
-    percent_below,
-    sequence_summary,
-    surface_error_mm,
-)
-from tracking.params import TrackingParams
-from tracking.segmentation import (
-    Segmentation,
-    background_from_depths,
-    foreground_mask,
-    render_arm_depth,
-    render_arm_mask,
-    segment_against_background,
-    segment_by_difference,
-    update_background,
-)
-from tracking.solver import edge_colouring, solve_keypoints
-from tracking.tracker import (
-    FrameResult,
-    Tracker,
-    TrackStatus,
-    assign_grasp_indices,
-    match_anchors,
-    smooth_causal,
-    smooth_symmetric,
-    track_frame,
-    update_grasp_indices,
-)
+# The names below are loaded on first use (PEP 562), so importing one submodule (tracking.params, for a CLI's
+# configuration, a CLI's start) does not load open3d, scikit-image and the rest.
+import importlib
+from typing import Any
+
+_EXPORTS = {  # name -> the submodule that defines it (imported on first use: see __getattr__)
+    "BOUNDARY": "tracking.anchors",
+    "CORNER": "tracking.anchors",
+    "JUNCTION": "tracking.anchors",
+    "LEAF": "tracking.anchors",
+    "detect_anchors_1d": "tracking.anchors",
+    "detect_anchors_2d": "tracking.anchors",
+    "ObjectClass": "tracking.classify",
+    "classify_object": "tracking.classify",
+    "depth_to_points": "tracking.geometry",
+    "farthest_point_sampling": "tracking.geometry",
+    "project_points": "tracking.geometry",
+    "Initialisation": "tracking.init",
+    "InitialisationError": "tracking.init",
+    "Topology": "tracking.init",
+    "initialise": "tracking.init",
+    "anchor_error_mm": "tracking.metrics",
+    "chamfer_mm": "tracking.metrics",
+    "edge_rmse_mm": "tracking.metrics",
+    "percent_below": "tracking.metrics",
+    "sequence_summary": "tracking.metrics",
+    "surface_error_mm": "tracking.metrics",
+    "TrackingParams": "tracking.params",
+    "Segmentation": "tracking.segmentation",
+    "background_from_depths": "tracking.segmentation",
+    "foreground_mask": "tracking.segmentation",
+    "render_arm_depth": "tracking.segmentation",
+    "render_arm_mask": "tracking.segmentation",
+    "segment_against_background": "tracking.segmentation",
+    "segment_by_difference": "tracking.segmentation",
+    "update_background": "tracking.segmentation",
+    "edge_colouring": "tracking.solver",
+    "solve_keypoints": "tracking.solver",
+    "FrameResult": "tracking.tracker",
+    "Tracker": "tracking.tracker",
+    "TrackStatus": "tracking.tracker",
+    "assign_grasp_indices": "tracking.tracker",
+    "match_anchors": "tracking.tracker",
+    "smooth_causal": "tracking.tracker",
+    "smooth_symmetric": "tracking.tracker",
+    "track_frame": "tracking.tracker",
+    "update_grasp_indices": "tracking.tracker",
+}
+
+
+def __getattr__(name: str) -> Any:
+    """``tracking.Tracker`` and the other re-exported names, imported from their submodule when first asked for."""
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(_EXPORTS[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'tracking' has no attribute {name!r}")
+
 
 __all__ = [
     "BOUNDARY",
