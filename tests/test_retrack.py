@@ -129,7 +129,8 @@ def test_a_killed_retrack_continues_where_it_stopped_with_the_keypoints_of_track
 @pytest.mark.slow
 def test_the_report_shows_the_versions(tracked, tmp_path: Path) -> None:
     session, _ = tracked
-    names = sorted(p.name for p in (session / "keypoints").iterdir())
+    versions = session / "keypoints"  # the other tests' versions, when they ran first in this process
+    names = sorted(p.name for p in versions.iterdir()) if versions.is_dir() else []
     if not names:
         _cli("retrack", str(session), "--workers", "1", "--version", "only", "--json")
         names = ["only"]

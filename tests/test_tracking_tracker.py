@@ -108,8 +108,12 @@ def test_anchor_matching_gates_and_kinds():
 def test_smoothing():
     traj = np.arange(6, dtype=float)[:, None, None] * np.ones((6, 2, 3))
     assert np.allclose(smooth_causal(traj, 3)[:, 0, 0], [0, 0.5, 1, 2, 3, 4])
-    assert np.allclose(smooth_symmetric(traj, 3)[:, 0, 0], [0.5, 1, 2, 3, 4, 4.5])
+    # a steady motion is kept exactly, the clip's ends included (a window cut on one side would lag there)
+    assert np.allclose(smooth_symmetric(traj, 3), traj) and np.allclose(smooth_symmetric(traj, 5), traj)
     assert np.allclose(smooth_symmetric(traj, 1), traj)
+    bump = np.zeros((6, 1, 1))
+    bump[2] = 6.0
+    assert np.allclose(smooth_symmetric(bump, 5)[:, 0, 0], [0, 2, 1.2, 1.2, 0, 0])  # windows 1, 3, 5, 5, 3, 1
 
 
 def test_consistent_anchors_leave_a_torn_edge_free():

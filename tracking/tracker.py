@@ -245,12 +245,14 @@ def smooth_causal(traj: np.ndarray, window: int) -> np.ndarray:
 
 
 def smooth_symmetric(traj: np.ndarray, window: int) -> np.ndarray:
-    """Symmetric moving average of a trajectory (T, N, 3) with an odd window (shrunk at the ends), frames."""
+    """Symmetric moving average of a trajectory (T, N, 3) with an odd window, frames. Near the ends the window
+    shrinks on both sides (frame t averages t-h..t+h with h <= t and h <= T-1-t): a window cut on one side only
+    lags a moving object by up to half a window at the clip's first and last frames."""
     T = len(traj)
-    h = max(0, window // 2)
-    c = np.cumsum(np.concatenate([np.zeros((1,) + traj.shape[1:]), traj]), axis=0)
     t = np.arange(T)
-    lo, hi = np.maximum(0, t - h), np.minimum(T, t + h + 1)
+    h = np.minimum(max(0, window // 2), np.minimum(t, T - 1 - t))
+    c = np.cumsum(np.concatenate([np.zeros((1,) + traj.shape[1:]), traj]), axis=0)
+    lo, hi = t - h, t + h + 1
     return (c[hi] - c[lo]) / (hi - lo)[:, None, None]
 
 
