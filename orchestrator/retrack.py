@@ -257,20 +257,27 @@ def open_version(session: Path, name: str, tracking: dict[str, Any], software: d
     return folder
 
 
-def npz_complete(path: Path, episode: Path) -> bool:
-    """Whether ``path`` is a whole result for ``episode``: every key, consistent shapes, and made from an
-    episode file of the same size (a recovered or re-recorded episode is tracked again)."""
+def read_complete_npz(path: Path, episode: Path) -> dict[str, np.ndarray] | None:
+    """The arrays of ``path`` when it is a whole result for ``episode`` (every key, consistent shapes, made from
+    an episode file of the same size: a recovered or re-recorded episode is tracked again), else None."""
     try:
         with np.load(path) as z:
             if not set(NPZ_KEYS) <= set(z.files):
-                return False
-            fn, kp, raw = z["frame_numbers"], z["keypoints"], z["raw"]
-            return (kp.ndim == 3 and kp.shape == raw.shape and len(fn) == len(kp) == len(z["grasp_indices"])
-                    and int(z["episode_bytes"]) == episode.stat().st_size)
+                return None
+            a = {k: z[k] for k in NPZ_KEYS}
+        fn, kp, raw = a["frame_numbers"], a["keypoints"], a["raw"]
+        whole = (kp.ndim == 3 and kp.shape == raw.shape and len(fn) == len(kp) == len(a["grasp_indices"])
+                 and int(a["episode_bytes"]) == episode.stat().st_size)
     except (OSError, ValueError, KeyError, EOFError):
-        return False
+        return None
     except Exception:  # noqa: BLE001 - a torn zip raises zipfile.BadZipFile and others
-        return False
+        return None
+    return a if whole else None
+
+
+def npz_complete(path: Path, episode: Path) -> bool:
+    """Whether ``path`` is a whole result for ``episode`` (``read_complete_npz``)."""
+    return read_complete_npz(path, episode) is not None
 
 
 def run_done(folder: Path, task: RunTask) -> bool:
@@ -564,10 +571,10 @@ def read_version(session: Path, version: str, episodes: list[Path]) -> dict[int,
     out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for e in episodes:
         path = Path(session) / VERSIONS_DIR / version / (Path(e).stem + ".npz")
-        if not npz_complete(path, Path(session) / Path(e).name):
+        z = read_complete_npz(path, Path(session) / Path(e).name)
+        if z is None:
             continue
-        with np.load(path) as z:
-            fn, kp, raw = z["frame_numbers"], z["keypoints"], z["raw"]
+        fn, kp, raw = z["frame_numbers"], z["keypoints"], z["raw"]
         out.update({int(n): (kp[i], raw[i]) for i, n in enumerate(fn)})
     return out
 
