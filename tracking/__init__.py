@@ -13,8 +13,8 @@ Typical use by a worker (all arrays SI, world frame z up, camera frame OpenCV):
     res = tracker.step(seg.points, tcp=tcp, gripper_closed=closed)   # res.status LOST -> initialise again
 """
 
-# The names below are loaded on first use (PEP 562), so importing one submodule (tracking.params, for a CLI's
-# configuration, a CLI's start) does not load open3d, scikit-image and the rest.
+# The names below are loaded on first use (PEP 562), so importing one submodule (tracking.params, which a CLI
+# needs to start) does not load open3d, scikit-image and the rest.
 import importlib
 from typing import Any
 
@@ -72,46 +72,4 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module 'tracking' has no attribute {name!r}")
 
 
-__all__ = [
-    "BOUNDARY",
-    "CORNER",
-    "JUNCTION",
-    "LEAF",
-    "FrameResult",
-    "Initialisation",
-    "InitialisationError",
-    "ObjectClass",
-    "Segmentation",
-    "Topology",
-    "TrackStatus",
-    "Tracker",
-    "TrackingParams",
-    "anchor_error_mm",
-    "assign_grasp_indices",
-    "background_from_depths",
-    "chamfer_mm",
-    "classify_object",
-    "depth_to_points",
-    "detect_anchors_1d",
-    "detect_anchors_2d",
-    "edge_colouring",
-    "edge_rmse_mm",
-    "farthest_point_sampling",
-    "foreground_mask",
-    "initialise",
-    "match_anchors",
-    "percent_below",
-    "project_points",
-    "render_arm_depth",
-    "render_arm_mask",
-    "segment_against_background",
-    "segment_by_difference",
-    "sequence_summary",
-    "smooth_causal",
-    "smooth_symmetric",
-    "solve_keypoints",
-    "surface_error_mm",
-    "track_frame",
-    "update_background",
-    "update_grasp_indices",
-]
+__all__ = sorted(_EXPORTS)

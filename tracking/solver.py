@@ -99,7 +99,7 @@ def project_to_cloud(
     _, nn = tree.query(X, k=k)
     nn = nn.reshape(len(X), k)
     nb = pts[nn]
-    prev = cache.get("nn") if cache is not None else None
+    prev = cache.get("members") if cache is not None else None
     members = np.sort(nn, axis=1)  # a projector depends on the set of neighbours, not their order
     if prev is not None and prev.shape == members.shape:
         proj = cache["projectors"]
@@ -110,7 +110,7 @@ def project_to_cloud(
     else:
         proj = extent_projectors(nb)
     if cache is not None:
-        cache["nn"], cache["projectors"] = members, proj
+        cache["members"], cache["projectors"] = members, proj
     p = nb[:, 0]
     off = np.einsum("nj,nij->ni", X - p, proj)
     n = np.sqrt(np.add.reduce(off * off, axis=1))[:, None]
