@@ -36,13 +36,16 @@ class TrackingParams:
         height test) and reachable through depth steps of at most attach_step_m between
         neighbouring pixels, m; each added part must be thin (lateral spread at most
         attach_max_spread_m, m). attach_step_px: the step is at least this many pixel footprints (a
-        tube at up to ~70 degrees to the image plane on a decimated image). An end dragged along the
+        tube at up to ~79 degrees to the image plane on a decimated image, e.g. a branch hanging away from
+        a camera above). An end dragged along the
         table (reach 0: off). attach_iterations:
         how many times the growth may repeat while a holding gripper's TCP is not reached.
       no_return_open_m: a region of the references without a reading in any of them and wider than
         this at 1 m is empty space beyond the sensor's range: its background is depth_max_m, so an
         object in front of it counts as changed (0: such pixels stay unknown), m.
       track_gate_m: in tracking, a cluster is kept if some point lies within this of the previous keypoints, m.
+      track_attach_m: in tracking, points DBSCAN leaves out are kept within this of the parts of the
+        previous object the kept clusters do not cover (``select_clusters_near``), m.
       background_object_gap_m: a farther reading is absorbed into the background only if its 3D
         point lies more than this from the tracked object (last cloud, keypoint edges): else it is
         the object moving away from the camera, m.
@@ -128,12 +131,13 @@ class TrackingParams:
     attach_iterations: int = 40
     attach_max_spread_m: float = 0.008
     attach_step_m: float = 0.01
-    attach_step_px: float = 3.0
+    attach_step_px: float = 5.0
     attach_plane_tol_m: float = 0.004
     attach_plane_min_fraction: float = 0.3
     attach_min_height_m: float = 0.005
     no_return_open_m: float = 0.02
     track_gate_m: float = 0.05
+    track_attach_m: float = 0.025
     background_object_gap_m: float = 0.015
     background_confirm_1d: int = 3
     background_confirm_2d: int = 2

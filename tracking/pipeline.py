@@ -271,7 +271,8 @@ class LivePipeline:
         steps) while a holding gripper's TCP (held (G, 3) m) is farther than ``grasp_gate_m`` from it: in a
         slow start only the middle of a rope moves, and its still ends hang up to the grippers. Kept only when
         it reaches a gripper the segmentation did not. When every gripper is reached already it is grown until
-        it stalls (nothing within ``grasp_gate_m`` of a TCP): a still free end, e.g. a branch's tip on the table."""
+        it stalls (nothing within ``grasp_gate_m`` of a TCP), a part of a pixel or more at a time: a still free end,
+        e.g. a branch's tip on the table or hanging away from the camera."""
         p = self.seg_params
         if held is None or len(held) == 0 or len(seg.points) == 0 or self.kind == "2d" or seg.grown:
             return seg
@@ -280,7 +281,7 @@ class LivePipeline:
         if reached.all():  # the still free parts (a branch's tip lying on the table) are grown to their ends
             out = seg
             for _ in range(p.attach_iterations):
-                grown = grow_attached_tubes(depth, out, self.K_seg, self.T, p, arm, self._support)
+                grown = grow_attached_tubes(depth, out, self.K_seg, self.T, p, arm, self._support, min_part_px=1)
                 new = grown.points[len(out.points):]
                 new = new[(np.linalg.norm(new[:, None, :] - held[None, :, :], axis=2) > p.grasp_gate_m).all(axis=1)]
                 if len(new) == 0:
@@ -344,6 +345,7 @@ class LivePipeline:
         self.tracker.resume(topology, keypoints, grasp_idx)
         self.background = np.array(background, np.float32)
         self._d0 = self.background
+        self._support = support_plane(self.background, self.K_seg, self.T, self.seg_params)
 
     def set_reference(self, depth: np.ndarray) -> None:
         """Make a decimated depth (h, w) m the reference D0 (and find the table plane in it: an
@@ -424,11 +426,10 @@ class LivePipeline:
         t0 = time.perf_counter()
         topo, X = self.tracker.topology, self.tracker.keypoints
         assert topo is not None and X is not None
-        behind = behind_near_object(
-            depth, self.background, self.seg_params, object_samples(X, topo), self.K_seg, self.T, arm
-        )
+        samples = object_samples(X, topo)
+        behind = behind_near_object(depth, self.background, self.seg_params, samples, self.K_seg, self.T, arm)
         seg = segment_against_background(
-            depth, self.background, self.K_seg, self.T, self.seg_params, arm, X, behind
+            depth, self.background, self.K_seg, self.T, self.seg_params, arm, X, behind, self._support, samples
         )
         self._timings["segment"] = 1e3 * (time.perf_counter() - t0)
         topology = self.tracker.topology

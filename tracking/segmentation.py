@@ -361,17 +361,41 @@ def select_largest_clusters(points: np.ndarray, labels: np.ndarray, params: Trac
 
 
 def select_clusters_near(
-    points: np.ndarray, labels: np.ndarray, keypoints: np.ndarray, params: TrackingParams
+    points: np.ndarray, labels: np.ndarray, keypoints: np.ndarray, params: TrackingParams,
+    support: tuple[np.ndarray, float] | None = None, samples: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Clusters with a point within ``track_gate_m`` of the previous keypoints (N, 3) -> (M, 3) float64, m."""
+    """Clusters with a point within ``track_gate_m`` of the previous keypoints (N, 3) -> (M, 3) float64, m.
+
+    samples: (S, 3) m points along the previous object (``object_samples``; default the keypoints).
+    Where the kept clusters leave the previous object uncovered (no point within ``dbscan_eps_m`` of it), the
+    points DBSCAN left out (noise, clusters under ``min_cluster_points``) within ``track_attach_m`` of it are
+    kept too: a tube steep to the image plane lifts to points several pixel footprints apart along it, too
+    sparse for DBSCAN. Next to a covered part such points are the sensor's flying pixels, and stay out; so
+    do those less than ``attach_min_height_m`` above the ``support`` plane (normal (3,), offset m: the
+    table, whose noise an object lying on it would otherwise gather frame after frame)."""
     ok = labels >= 0
-    if not ok.any() or len(keypoints) == 0:
+    if len(keypoints) == 0 or len(points) == 0:
         return np.zeros((0, 3))
-    sizes = np.bincount(labels[ok])
+    sizes = np.bincount(labels[ok]) if ok.any() else np.zeros(0, np.int64)
     d, _ = cKDTree(keypoints).query(points[ok], distance_upper_bound=params.track_gate_m)
     near = np.bincount(labels[ok], weights=np.isfinite(d).astype(np.float64), minlength=len(sizes)) > 0
-    near &= sizes >= params.min_cluster_points
-    return points[ok & near[np.maximum(labels, 0)]]
+    big = sizes >= params.min_cluster_points
+    keep = np.zeros(len(points), bool)
+    keep[ok] = (near & big)[labels[ok]]
+    loose = ~keep
+    loose[ok] &= ~big[labels[ok]]
+    if support is not None:
+        loose &= points @ support[0] - support[1] >= params.attach_min_height_m
+    if params.track_attach_m <= 0 or not loose.any():
+        return points[keep]
+    open_ = keypoints if samples is None else samples
+    if keep.any():
+        covered = np.isfinite(cKDTree(points[keep]).query(open_, distance_upper_bound=params.dbscan_eps_m)[0])
+        open_ = open_[~covered]
+    if len(open_):
+        d, _ = cKDTree(open_).query(points[loose], distance_upper_bound=params.track_attach_m)
+        keep[np.flatnonzero(loose)[np.isfinite(d)]] = True
+    return points[keep]
 
 
 def _cluster(
@@ -381,8 +405,11 @@ def _cluster(
     T_world_cam: np.ndarray,
     params: TrackingParams,
     prev_keypoints: np.ndarray | None,
+    support: tuple[np.ndarray, float] | None = None,
+    samples: np.ndarray | None = None,
 ) -> Segmentation:
-    """Lift foreground (H, W) bool pixels, voxelise, DBSCAN and select the object clusters."""
+    """Lift foreground (H, W) bool pixels, voxelise, DBSCAN and select the object clusters
+    (``select_clusters_near`` with prev_keypoints, the table plane ``support`` and ``samples``, else the largest)."""
     s = max(1, params.lift_stride)
     sub = np.zeros_like(fg)
     sub[::s, ::s] = fg[::s, ::s]
@@ -393,7 +420,7 @@ def _cluster(
     if prev_keypoints is None:
         obj = select_largest_clusters(vox, labels, params)
     else:
-        obj = select_clusters_near(vox, labels, prev_keypoints, params)
+        obj = select_clusters_near(vox, labels, prev_keypoints, params, support, samples)
     return Segmentation(obj, len(pts), n_clusters)
 
 
@@ -638,6 +665,7 @@ def grow_attached_tubes(
     params: TrackingParams,
     arm_mask: np.ndarray | None = None,
     support: tuple[np.ndarray, float] | None = None,
+    min_part_px: int = 3,
 ) -> Segmentation:
     """A 1D object's difference segmentation completed with its parts that did not move.
 
@@ -651,8 +679,10 @@ def grow_attached_tubes(
     from the object's pixels over a depth-continuous surface (``grow_depth_region``, step
     ``attach_step_m`` or ``attach_step_px`` pixel footprints at the cloud's median depth, the
     larger) are added, when each added connected part is thin (lateral spread, the square
-    root of its second PCA eigenvalue, at most ``attach_max_spread_m``): the rest of a tube, not a
-    patch of surface. Returns a new Segmentation (the input when nothing is added or the reach is 0).
+    root of its second PCA eigenvalue, at most ``attach_max_spread_m``) and of at least ``min_part_px``
+    pixels: the rest of a tube, not a patch of surface or a speck of noise. Repeated growth towards a free
+    end takes single pixels (1): a tube steep to the image plane gains a row of one or two pixels a step.
+    Returns a new Segmentation (the input when nothing is added or the reach is 0).
     """
     reach = params.attach_reach_m
     if reach <= 0 or len(seg.points) == 0:
@@ -689,7 +719,7 @@ def grow_attached_tubes(
     _, lab = cv2.connectedComponents(grown.astype(np.uint8), connectivity=8)
     pts, pix = depth_to_points(depth1, K, T_world_cam, grown)
     comp = lab[pix[:, 0], pix[:, 1]]
-    thin = (component_spreads(pts, comp)[:, 1] <= params.attach_max_spread_m) & (np.bincount(comp) >= 3)
+    thin = (component_spreads(pts, comp)[:, 1] <= params.attach_max_spread_m) & (np.bincount(comp) >= min_part_px)
     accepted = thin[comp]
     if not accepted.any():
         return seg
@@ -930,14 +960,17 @@ def segment_against_background(
     arm_mask: np.ndarray | None = None,
     prev_keypoints: np.ndarray | None = None,
     extra: np.ndarray | None = None,
+    support: tuple[np.ndarray, float] | None = None,
+    samples: np.ndarray | None = None,
 ) -> Segmentation:
     """Per-frame segmentation: pixels in front of the background minus arms, clustered.
 
     depth, background: (H, W) float metres. prev_keypoints: (N, 3) m; when given, clusters near
     them are kept (all of them: an object split by a gripper stays whole), else the largest.
-    extra: (H, W) bool pixels known to be object as well (``behind_near_object``).
+    extra: (H, W) bool pixels known to be object as well (``behind_near_object``). support: the table plane
+    (``support_plane``), samples: (S, 3) m points along the previous object (``select_clusters_near``).
     """
     fg = foreground_mask(depth, background, params, arm_mask)
     if extra is not None:
         fg |= extra
-    return _cluster(depth, fg, K, T_world_cam, params, prev_keypoints)
+    return _cluster(depth, fg, K, T_world_cam, params, prev_keypoints, support, samples)
