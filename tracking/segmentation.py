@@ -385,16 +385,21 @@ def select_clusters_near(
     loose = ~keep
     loose[ok] &= ~big[labels[ok]]
     if support is not None:
-        loose &= points @ support[0] - support[1] >= params.attach_min_height_m
+        loose &= points_above_support(points, support, params.attach_min_height_m)
     if params.track_attach_m <= 0 or not loose.any():
         return points[keep]
-    open_ = keypoints if samples is None else samples
+    ref = keypoints if samples is None else samples
+    # only loose points near the object at all can be near an uncovered part of it: the coverage test (a
+    # KD-tree of every kept point) runs only when there are some
+    cand = np.flatnonzero(loose)
+    cand = cand[np.isfinite(cKDTree(ref).query(points[cand], distance_upper_bound=params.track_attach_m)[0])]
+    if len(cand) == 0:
+        return points[keep]
     if keep.any():
-        covered = np.isfinite(cKDTree(points[keep]).query(open_, distance_upper_bound=params.dbscan_eps_m)[0])
-        open_ = open_[~covered]
-    if len(open_):
-        d, _ = cKDTree(open_).query(points[loose], distance_upper_bound=params.track_attach_m)
-        keep[np.flatnonzero(loose)[np.isfinite(d)]] = True
+        ref = ref[~np.isfinite(cKDTree(points[keep]).query(ref, distance_upper_bound=params.dbscan_eps_m)[0])]
+    if len(ref):
+        d, _ = cKDTree(ref).query(points[cand], distance_upper_bound=params.track_attach_m)
+        keep[cand[np.isfinite(d)]] = True
     return points[keep]
 
 
@@ -509,6 +514,12 @@ def grow_depth_region(
     keep[lab[seeds & cand]] = True
     keep[0] = False
     return keep[lab]
+
+
+def points_above_support(points: np.ndarray, support: tuple[np.ndarray, float], min_height_m: float) -> np.ndarray:
+    """(N,) bool: points (N, 3) m world standing at least min_height_m above the support plane (unit normal (3,),
+    offset m, camera side positive: ``support_plane``); ``above_support`` is the same test on a depth image."""
+    return points @ support[0] - support[1] >= min_height_m
 
 
 def above_support(
@@ -703,7 +714,7 @@ def grow_attached_tubes(
     d, _ = tree.query(zp, distance_upper_bound=reach)
     ok = np.isfinite(d)
     if support is not None:
-        ok &= zp @ support[0] - support[1] >= params.attach_min_height_m
+        ok &= points_above_support(zp, support, params.attach_min_height_m)
     zpix = zpix[ok]
     if len(zpix) == 0:
         return seg
