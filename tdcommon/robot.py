@@ -81,6 +81,42 @@ def panda_link_meshes() -> tuple[LinkMesh, ...]:
     return tuple(out)
 
 
+@dataclass(frozen=True)
+class LinkSoup:
+    """Some of the Panda's link meshes merged once, to be posed every frame without merging again.
+
+    vertices: (V, 3) float64 m, each in its mesh's frame; triangles: (F, 3) int32 into them (read-only);
+    bounds: (L + 1,) int64 vertex offsets of the L meshes; joint_index: (L,) int64 pinocchio joint of each;
+    placement: (L, 4, 4) joint <- mesh.
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    bounds: np.ndarray
+    joint_index: np.ndarray
+    placement: np.ndarray
+
+    def posed(self, joint_poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The meshes at joint poses (J, 4, 4) world <- joint: vertices (V, 3) float64 m world, the
+        (shared, read-only) triangles (F, 3) int32."""
+        T = joint_poses[self.joint_index] @ self.placement
+        out = np.empty_like(self.vertices)
+        for k, (a, b) in enumerate(zip(self.bounds[:-1], self.bounds[1:], strict=True)):
+            out[a:b] = self.vertices[a:b] @ T[k, :3, :3].T + T[k, :3, 3]
+        return out, self.triangles
+
+
+@functools.lru_cache(maxsize=4)
+def panda_link_soup(joints: tuple[int, ...] | None = None) -> LinkSoup:
+    """``panda_link_meshes`` (those on ``joints`` only, else all) merged into one ``LinkSoup``, built once."""
+    links = [m for m in panda_link_meshes() if joints is None or m.joint_index in joints]
+    v, f = merge_meshes([(m.vertices, m.triangles) for m in links])
+    f.setflags(write=False)
+    bounds = np.cumsum([0] + [len(m.vertices) for m in links]).astype(np.int64)
+    placement = np.stack([m.placement for m in links]) if links else np.zeros((0, 4, 4))
+    return LinkSoup(v, f, bounds, np.array([m.joint_index for m in links], np.int64), placement)
+
+
 def joint_limits() -> dict[str, np.ndarray]:
     """The Panda's published joint limits, each (7,): position lower/upper (rad), velocity (rad/s),
     acceleration (rad/s^2) and jerk (rad/s^3) from Franka's datasheet."""
@@ -140,18 +176,15 @@ class PandaKinematics:
     def world_meshes(self, q: np.ndarray, finger_width: float = 0.08) -> tuple[np.ndarray, np.ndarray]:
         """The whole arm as one triangle soup in the world frame.
 
-        Returns vertices (V, 3) float64 m and triangles (F, 3) int32, ≈2.3k triangles.
+        Returns vertices (V, 3) float64 m and triangles (F, 3) int32, ≈2.3k triangles (one read-only array
+        shared by every call).
         """
-        poses = self.joint_poses(q, finger_width)
-        return merge_meshes([transform_mesh((link.vertices, link.triangles), poses[link.joint_index] @ link.placement)
-                             for link in panda_link_meshes()])
+        return panda_link_soup().posed(self.joint_poses(q, finger_width))
 
     def finger_meshes(self, q: np.ndarray, finger_width: float) -> tuple[np.ndarray, np.ndarray]:
         """The two fingers alone at this opening (m) for joints ``q`` (7,): vertices (V, 3) float64 m world,
-        triangles (F, 3) int32."""
-        poses = self.joint_poses(q, finger_width)
-        return merge_meshes([transform_mesh((link.vertices, link.triangles), poses[link.joint_index] @ link.placement)
-                             for link in panda_link_meshes() if link.joint_index in HAND_JOINTS[1:]])
+        triangles (F, 3) int32 (shared, read-only)."""
+        return panda_link_soup(HAND_JOINTS[1:]).posed(self.joint_poses(q, finger_width))
 
 
 def arm_inputs(left: PandaKinematics, right: PandaKinematics, q_left: np.ndarray, q_right: np.ndarray) -> np.ndarray:
