@@ -6,6 +6,7 @@ the arm mask in tracking and the synthetic test scenes build them, and the Panda
 
 from __future__ import annotations
 
+import zlib
 from collections.abc import Sequence
 
 import numpy as np
@@ -102,3 +103,49 @@ def mesh_sources(meshes: Sequence[Mesh]) -> np.ndarray:
     """(F,) int32: for each triangle of ``merge_meshes(meshes)``, the index of the mesh it came from."""
     return np.concatenate([np.full(len(f), k, dtype=np.int32) for k, (_, f) in enumerate(meshes)] or
                           [np.zeros(0, np.int32)])
+
+
+def closed_outward(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(F,) bool: the triangles on closed, consistently and outward oriented components of a mesh.
+
+    vertices: (V, 3) m (coincident vertices are merged first: a triangle soup is fine);
+    triangles: (F, 3). On such a (non self-intersecting) component a back face is always
+    hidden behind a front face of the same component, so a renderer may skip it.
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    _, key = np.unique(np.round(np.asarray(vertices, dtype=np.float64), 9), axis=0, return_inverse=True)
+    f = key.reshape(-1)[np.asarray(triangles, dtype=np.int64)]
+    n_v = int(key.max()) + 1 if len(key) else 0
+    a, b = f.reshape(-1), f[:, [1, 2, 0]].reshape(-1)  # directed edges, three per triangle
+    code, reverse = a * n_v + b, b * n_v + a
+    order = np.sort(code)
+    unique_edges = len(np.unique(code)) == len(code)
+    pos = np.clip(np.searchsorted(order, reverse), 0, len(order) - 1)
+    proper = (a != b).reshape(-1, 3).all(axis=1)  # no degenerate edge
+    has_reverse = (order[pos] == reverse).reshape(-1, 3).all(axis=1) & proper
+    graph = sp.csr_matrix((np.ones(len(a)), (a, b)), shape=(n_v, n_v))
+    _, comp = connected_components(graph, directed=False)
+    tri_comp = comp[f[:, 0]]
+    p = np.asarray(vertices, dtype=np.float64)[np.asarray(triangles)]
+    volume = np.bincount(tri_comp, np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])) / 6.0)
+    comp_ok = np.bincount(tri_comp, ~has_reverse) == 0
+    return unique_edges & comp_ok[tri_comp] & (volume[tri_comp] > 0)
+
+
+class OutwardCache:
+    """``closed_outward`` of a mesh, computed once per triangle list: a rigidly moving mesh (an arm's links at
+    any joints) keeps its vertex count, triangles and orientation. Call it with a mesh (vertices, triangles)."""
+
+    def __init__(self) -> None:
+        self._known: dict[tuple[int, int, int], np.ndarray] = {}
+
+    def __call__(self, mesh: Mesh) -> np.ndarray:
+        """(F,) bool: the triangles of ``mesh`` a renderer may skip when they face away from the camera."""
+        v, f = mesh
+        f = np.ascontiguousarray(f)
+        key = (len(v), len(f), zlib.crc32(f.tobytes()))
+        if key not in self._known:
+            self._known[key] = closed_outward(v, f)
+        return self._known[key]

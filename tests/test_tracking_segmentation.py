@@ -122,6 +122,31 @@ def test_rasterised_arm_depth_is_the_raycast_one(cam, stride, monkeypatch):
     monkeypatch.setattr(seg_module, "_RASTER_MAX_FRAGMENTS", 10)  # too many pixels to hold: raycast
     np.testing.assert_array_equal(rasterise_depth(V, F, K, T, (H, W), stride), want)
 
+def test_arm_depth_skips_the_arms_back_faces_and_draws_the_same_image(cam):
+    """The Panda's link meshes are closed and outward: drawn without their back faces they give the same
+    z-buffer image, pixel for pixel; a mesh whose faces are not all outward keeps them (box turned inside out)."""
+    from tdcommon.meshes import closed_outward
+    from tdcommon.robot import HOME_Q, PandaKinematics
+
+    K, T = cam
+    V, F = PandaKinematics(np.array([[1, 0, 0, 0.35], [0, 1, 0, -0.4], [0, 0, 1, 0], [0, 0, 0, 1.0]])).world_meshes(
+        np.array(HOME_Q)
+    )
+    cull = closed_outward(V, F)
+    assert cull.all()
+    for stride in (1, 2):
+        want = rasterise_depth(V, F, K, T, (H, W), stride)
+        assert np.isfinite(want).sum() > 500
+        np.testing.assert_array_equal(rasterise_depth(V, F, K, T, (H, W), stride, cull), want)
+    v, f = box_mesh((0.0, 0.1, 0.2), (0.05, 0.05, 0.1))
+    inside_out = f[:, ::-1]
+    assert not closed_outward(v, inside_out).any()
+    np.testing.assert_array_equal(
+        rasterise_depth(v, inside_out, K, T, (H, W), 1, closed_outward(v, inside_out)),
+        rasterise_depth(v, f, K, T, (H, W), 1),
+    )
+
+
 def test_difference_segmentation_isolates_rope_without_colour(cam):
     K, T = cam
     rng = np.random.default_rng(1)

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
+from tdcommon.meshes import OutwardCache
 from tracking.classify import classify_object
 from tracking.geometry import decimated_intrinsics, decimation_stride, edge_samples
 from tracking.init import InitialisationError, Topology
@@ -144,6 +145,7 @@ class LivePipeline:
             arm_render_stride=max(1, int(round(params.arm_render_stride / s))),
         )
         self.tracker = Tracker(params, self.K, self.T)
+        self._cullable = OutwardCache()  # the arm meshes' back faces the arm mask may skip, per topology
         self.reset()
 
     def reset(self) -> None:
@@ -187,7 +189,7 @@ class LivePipeline:
         p = self.seg_params
         return render_arm_mask(
             arm_vertices, arm_triangles, self.K_seg, self.T, depth.shape, p.arm_margin_px, depth, p.arm_margin_m,
-            p.arm_render_stride,
+            p.arm_render_stride, self._cullable((arm_vertices, arm_triangles)),
         )
 
     def prepare(

@@ -175,6 +175,7 @@ def rasterise_depth(
     T_world_cam: np.ndarray,
     shape: tuple[int, int],
     stride: int = 1,
+    cullable: np.ndarray | None = None,
 ) -> np.ndarray:
     """``render_arm_depth``'s image drawn with a z-buffer instead of raycast: no BVH to build every frame.
 
@@ -182,6 +183,8 @@ def rasterise_depth(
     ``stride``-th pixel in the meshes' projected box, upsampled): each triangle is scanned row by row over the
     grid pixels whose centre its projection covers (both faces), at the camera z-depth where that pixel's ray
     meets its plane (kept within the triangle's depth range: an edge-on sliver's plane is ill-conditioned).
+    cullable: (F,) bool triangles skipped when they face away from the camera (``tdcommon.meshes.closed_outward``:
+    on a closed outward mesh such a face is behind one that faces the camera; about half the work).
     A mesh with a vertex behind the camera, or covering more than ``_RASTER_MAX_FRAGMENTS`` grid pixels
     counted per triangle (memory), is raycast (``render_arm_depth``).
     Returns (H, W) float32 camera z-depth in metres, +inf where no mesh is hit.
@@ -203,6 +206,10 @@ def rasterise_depth(
         return out
     nr, nc = len(range(r0, r1, stride)), len(range(c0, c1, stride))
     tri = np.asarray(triangles, np.int64)
+    if cullable is not None and cullable.any():  # faces turned away from the camera, behind those towards it
+        q0 = vc[tri[:, 0]]
+        away = np.einsum("ij,ij->i", np.cross(vc[tri[:, 1]] - q0, vc[tri[:, 2]] - q0), q0) >= 0
+        tri = tri[~(away & cullable)]
     # each triangle's corners top (t), middle (m), bottom (b) by image row, and the grid rows it spans
     # (grid row i is image row r0 + i stride)
     order = np.argsort(v[tri], axis=1, kind="stable")
@@ -261,6 +268,7 @@ def render_arm_mask(
     depth: np.ndarray | None = None,
     margin_m: float = 0.02,
     stride: int = 2,
+    cullable: np.ndarray | None = None,
 ) -> np.ndarray:
     """Image-space arm mask from rendered arm meshes.
 
@@ -269,10 +277,10 @@ def render_arm_mask(
     ``depth`` the grown silhouette is returned; with measured depth (H, W) float metres a pixel is
     arm when it is inside the grown silhouette and its measured depth is missing, within
     ``margin_m`` of, or behind the rendered arm (an object in front of the arm survives).
-    The silhouette and depth are ``rasterise_depth``'s (``render_arm_depth``'s image without its BVH).
-    Returns (H, W) bool.
+    The silhouette and depth are ``rasterise_depth``'s (``render_arm_depth``'s image without its BVH; cullable:
+    its (F,) bool back faces that may be skipped). Returns (H, W) bool.
     """
-    arm = rasterise_depth(vertices, triangles, K, T_world_cam, shape, stride)
+    arm = rasterise_depth(vertices, triangles, K, T_world_cam, shape, stride, cullable)
     if margin_px > 0:
         k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin_px + 1, 2 * margin_px + 1))
         arm = cv2.erode(arm, k)

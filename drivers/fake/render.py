@@ -13,17 +13,14 @@ model share the per-pixel state of :class:`SceneRenderer`; split, they would pas
 from __future__ import annotations
 
 import threading
-import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 
 from drivers.config import Pose
-from tdcommon.meshes import Mesh, box_mesh, merge_meshes, mesh_sources
+from tdcommon.meshes import Mesh, OutwardCache, box_mesh, merge_meshes, mesh_sources
 from tdcommon.transforms import look_at
 from tdcommon.types import CameraIntrinsics
 
@@ -80,32 +77,6 @@ def static_scene(clutter: int, seed: int) -> tuple[list[Mesh], list[tuple[int, i
         colours.append(tuple(int(c) for c in rng.integers(30, 230, 3)))
         placed += 1
     return meshes, colours
-
-
-def closed_outward(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(F,) bool: the triangles on closed, consistently and outward oriented components of a mesh.
-
-    vertices: (V, 3) m (coincident vertices are merged first: a triangle soup is fine);
-    triangles: (F, 3). On such a (non self-intersecting) component a back face is always
-    hidden behind a front face of the same component, so a renderer may skip it.
-    """
-    _, key = np.unique(np.round(np.asarray(vertices, dtype=np.float64), 9), axis=0, return_inverse=True)
-    f = key.reshape(-1)[np.asarray(triangles, dtype=np.int64)]
-    n_v = int(key.max()) + 1 if len(key) else 0
-    a, b = f.reshape(-1), f[:, [1, 2, 0]].reshape(-1)  # directed edges, three per triangle
-    code, reverse = a * n_v + b, b * n_v + a
-    order = np.sort(code)
-    unique_edges = len(np.unique(code)) == len(code)
-    pos = np.clip(np.searchsorted(order, reverse), 0, len(order) - 1)
-    proper = (a != b).reshape(-1, 3).all(axis=1)  # no degenerate edge
-    has_reverse = (order[pos] == reverse).reshape(-1, 3).all(axis=1) & proper
-    graph = sp.csr_matrix((np.ones(len(a)), (a, b)), shape=(n_v, n_v))
-    _, comp = connected_components(graph, directed=False)
-    tri_comp = comp[f[:, 0]]
-    p = np.asarray(vertices, dtype=np.float64)[np.asarray(triangles)]
-    volume = np.bincount(tri_comp, np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])) / 6.0)
-    comp_ok = np.bincount(tri_comp, ~has_reverse) == 0
-    return unique_edges & comp_ok[tri_comp] & (volume[tri_comp] > 0)
 
 
 # ---------------------------------------------------------------- rendering
@@ -187,7 +158,7 @@ class SceneRenderer:
         self.object_color = np.asarray(object_color, dtype=np.float32)
         self.nthreads = int(nthreads)
         self.rasterise = bool(rasterise)
-        self._cullable: dict[tuple[int, int, int], np.ndarray] = {}  # arm topology -> closed_outward()
+        self._cullable = OutwardCache()  # arm topology -> closed_outward()
         K = intrinsics
         H, W = K.height, K.width
         # Contiguous copies: numpy's matmul skips BLAS (100x slower) for strided operands.
@@ -479,15 +450,6 @@ class SceneRenderer:
         return np.flatnonzero(covered)
 
     # ------------------------------------------------------------ per frame
-    def _arm_cullable(self, mesh: Mesh) -> np.ndarray:
-        """(F,) bool back-face culling allowed, for an arm mesh (rigid closed links: checked once per topology)."""
-        v, f = mesh
-        f = np.ascontiguousarray(f)
-        key = (len(v), len(f), zlib.crc32(f.tobytes()))
-        if key not in self._cullable:
-            self._cullable[key] = closed_outward(v, f)
-        return self._cullable[key]
-
     def render(
         self,
         arms: Sequence[Mesh],
@@ -521,7 +483,7 @@ class SceneRenderer:
             if self.rasterise and pc[:, 2].min() > 1e-3:
                 # Back faces of the arms' closed links are never seen (n . a > 0: facing away).
                 n_obj = len(f) - sum(len(m[1]) for m in arms)  # the object deforms: never culled
-                cull = np.concatenate([*(self._arm_cullable(m) for m in arms), np.zeros(n_obj, bool)]) & (na > 0)
+                cull = np.concatenate([*(self._cullable(m) for m in arms), np.zeros(n_obj, bool)]) & (na > 0)
                 keep = np.flatnonzero(~cull)
                 pidx, inv, tri = self._rasterise(pc, f[keep], n[keep], na[keep])
                 tri = keep[tri]
