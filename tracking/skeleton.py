@@ -5,14 +5,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
+from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components, dijkstra, minimum_spanning_tree
 from skimage.morphology import skeletonize
 
 LEAF = 0
 JUNCTION = 1
 
-_OFFSETS = np.array([[0, 1], [1, -1], [1, 0], [1, 1]])
+_OFFSETS = np.array([[0, 1], [1, -1], [1, 0], [1, 1]])  # the forward half of the 8-neighbourhood, raster order
+_STEP_PX = np.hypot(_OFFSETS[:, 0], _OFFSETS[:, 1])
 
 
 @dataclass(frozen=True)
@@ -31,75 +32,95 @@ class SkeletonGraph:
 
 
 def pixel_graph(skel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """8-neighbour graph of skeleton pixels (H, W) bool -> (rc (P, 2) int, edges (Q, 2) int, weights (Q,) px)."""
-    rc = np.argwhere(skel)
-    H, W = skel.shape
-    index = np.full((H + 2, W + 2), -1, np.int64)
-    index[rc[:, 0] + 1, rc[:, 1] + 1] = np.arange(len(rc))
-    es, ws = [], []
-    for dr, dc in _OFFSETS:
-        nb = index[rc[:, 0] + 1 + dr, rc[:, 1] + 1 + dc]
-        ok = nb >= 0
-        es.append(np.stack([np.nonzero(ok)[0], nb[ok]], axis=1))
-        ws.append(np.full(int(ok.sum()), np.hypot(dr, dc)))
-    return rc, np.concatenate(es).astype(np.int64), np.concatenate(ws)
+    """8-neighbour graph of the pixels of a skeleton (H, W) bool.
+
+    Returns rc (P, 2) int64 pixel (row, col) in raster order, edges (Q, 2) int64 pixel index pairs
+    (i < j, sorted by i then j: a canonical CSR order) and their lengths (Q,) float64 px.
+    """
+    W = skel.shape[1]
+    flat = np.flatnonzero(skel)  # ~10x faster than a 2D nonzero on a sparse image
+    rc = np.stack(np.divmod(flat, W), axis=1)
+    if len(flat) == 0:
+        return rc, np.zeros((0, 2), np.int64), np.zeros(0)
+    # raster index with one spare column per row: a neighbour left of column 0 lands in it, not on the row above
+    key = rc[:, 0] * (W + 1) + rc[:, 1]
+    nb = key[:, None] + (_OFFSETS[:, 0] * (W + 1) + _OFFSETS[:, 1])  # (P, 4) the forward neighbours' keys
+    j = np.minimum(np.searchsorted(key, nb), len(key) - 1)
+    i, o = np.nonzero(key[j] == nb)
+    return rc, np.stack([i, j[i, o]], axis=1), _STEP_PX[o]
 
 
-def spanning_forest(n: int, edges: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Minimum spanning forest (scipy) of an n-vertex graph -> its edges (Q', 2) int64."""
-    if len(edges) == 0:
-        return np.zeros((0, 2), np.int64)
-    g = coo_matrix((weights, (edges[:, 0], edges[:, 1])), shape=(n, n)).tocsr()
-    t = minimum_spanning_tree(g).tocoo()
-    return np.stack([t.row, t.col], axis=1).astype(np.int64)
+def spanning_forest(n: int, edges: np.ndarray, weights: np.ndarray) -> csr_matrix:
+    """Minimum spanning forest (scipy) of an n-vertex graph.
+
+    edges: (Q, 2) int (i, j), i < j, sorted by i then j (``pixel_graph``'s order); weights: (Q,).
+    Returns the forest as an (n, n) CSR matrix, each edge stored once as (i, j) with its weight.
+    """
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(edges[:, 0], minlength=n))])
+    g = csr_matrix((weights, edges[:, 1], indptr), shape=(n, n))  # the sorted edges are its CSR order
+    return minimum_spanning_tree(g, overwrite=True)
 
 
-def _csr(n: int, edges: np.ndarray, weights: np.ndarray | None = None) -> coo_matrix:
-    w = np.ones(len(edges)) if weights is None else weights
-    return coo_matrix((w, (edges[:, 0], edges[:, 1])), shape=(n, n)).tocsr()
+def _edges(forest: csr_matrix) -> np.ndarray:
+    """Edges (Q, 2) int64 of a CSR forest in storage (row-major) order."""
+    rows = np.repeat(np.arange(forest.shape[0]), np.diff(forest.indptr))
+    return np.stack([rows, forest.indices], axis=1).astype(np.int64)
 
 
 def _branches(
-    rc: np.ndarray, alive: np.ndarray, edges: np.ndarray
+    alive: np.ndarray, edges: np.ndarray, forest: csr_matrix, comp: np.ndarray
 ) -> tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]:
     """Decompose a forest (edges among alive pixels) into branches between non-degree-2 pixels.
 
-    Returns degree (P,) and branches (a, b, pixel indices ordered a -> b, ends included).
+    alive: (P,) bool; edges: (Q, 2) int64 the forest's edges among alive pixels; forest: (P, P) CSR
+    of a forest whose alive part is ``edges`` (it may hold more edges, to pixels no longer alive);
+    comp: (P,) int64 its connected component per pixel, in which the alive pixels are connected.
+    Returns degree (P,) and branches (a, b, pixel indices ordered a -> b, ends included), a being
+    the end nearer the component's first node (raster order): node-node edges in ``edges`` order,
+    then the branches through degree-2 pixels ordered by their first pixel.
     """
-    n = len(rc)
+    n = len(alive)
     deg = np.bincount(edges.ravel(), minlength=n)
     node = alive & (deg != 2)
     inner = alive & (deg == 2)
-    both_inner = inner[edges[:, 0]] & inner[edges[:, 1]]
-    _, lab = connected_components(_csr(n, edges[both_inner]), directed=False)
-    # distance from one root per component orders the pixels along every branch
-    _, comp = connected_components(_csr(n, edges), directed=False)
-    first = np.full(comp.max() + 1, -1)
+    # distance and parent from one root per component order the pixels along every branch
     cand = np.nonzero(node)[0]
+    first = np.full(comp.max() + 1, -1)
     first[comp[cand[::-1]]] = cand[::-1]
     roots = first[first >= 0]
-    lengths = np.hypot(*(rc[edges[:, 0]] - rc[edges[:, 1]]).T)
-    dist = dijkstra(_csr(n, edges, lengths), directed=False, indices=roots, min_only=True)
+    dist, pred, _ = dijkstra(forest, directed=False, indices=roots, min_only=True, return_predecessors=True)
     out: list[tuple[int, int, np.ndarray]] = []
     nn = node[edges[:, 0]] & node[edges[:, 1]]
     for a, b in edges[nn]:
         a, b = (a, b) if dist[a] <= dist[b] else (b, a)
         out.append((int(a), int(b), np.array([a, b])))
-    mixed = node[edges[:, 0]] != node[edges[:, 1]]
-    me = edges[mixed]
-    nd = np.where(node[me[:, 0]], me[:, 0], me[:, 1])
-    it = np.where(node[me[:, 0]], me[:, 1], me[:, 0])
     inner_idx = np.nonzero(inner)[0]
-    order = inner_idx[np.lexsort((dist[inner_idx], lab[inner_idx]))]
-    labs = lab[order]
-    starts = np.searchsorted(labs, np.unique(labs))
-    ends = np.append(starts[1:], len(order)) if len(starts) else starts  # no inner pixel: no such branch
-    for s, e in zip(starts, ends, strict=True):
-        pix = order[s:e]
-        ends_nodes = nd[lab[it] == lab[pix[0]]]
-        if len(ends_nodes) < 2:
-            continue
-        a, b = ends_nodes[np.argsort(dist[ends_nodes])][[0, -1]]
+    if len(inner_idx) == 0:
+        return deg, out
+    # a degree-2 pixel's parent is on its branch or is the branch's upper end: pointer doubling
+    # takes every degree-2 pixel to the first pixel of its branch (``top``)
+    top = np.arange(n)
+    down = inner_idx[inner[pred[inner_idx]]]
+    top[down] = pred[down]
+    while True:
+        nxt = top[top]
+        if np.array_equal(nxt, top):
+            break
+        top = nxt
+    label = top[inner_idx]
+    chains, start = np.unique(label, return_index=True)  # first occurrence: the branch's first pixel
+    key = np.empty(n, np.int64)
+    key[chains] = inner_idx[start]
+    order = inner_idx[np.lexsort((dist[inner_idx], key[label]))]
+    starts = np.flatnonzero(np.diff(top[order], prepend=-1))
+    upper = pred[top[order[starts]]]
+    # the lower end: the node whose parent is the branch's last pixel
+    lower = np.empty(n, np.int64)
+    tail = cand[(pred[cand] >= 0)]
+    tail = tail[inner[pred[tail]]]
+    lower[top[pred[tail]]] = tail
+    for pix, a in zip(np.split(order, starts[1:]), upper, strict=True):
+        b = lower[top[pix[0]]]
         out.append((int(a), int(b), np.concatenate([[a], pix, [b]])))
     return deg, out
 
@@ -122,13 +143,17 @@ def skeleton_graph(mask: np.ndarray, spur_px: float, merge_px: float, min_compon
     empty = SkeletonGraph(np.zeros((0, 2)), np.zeros(0, np.int64), [], np.zeros(0, np.int64))
     if n < 2:
         return empty
-    edges = spanning_forest(n, edges, w)
-    ncomp, comp = connected_components(_csr(n, edges), directed=False)
+    forest = spanning_forest(n, edges, w)
+    edges = _edges(forest)
+    ncomp, comp = connected_components(forest, directed=False)
     sizes = np.bincount(comp, minlength=ncomp)
     alive = sizes[comp] >= max(2, min_component_px)
+    if not alive.any():
+        return empty
     edges = edges[alive[edges[:, 0]] & alive[edges[:, 1]]]
+    # pruning a leaf branch leaves each component's alive pixels connected: ``comp`` and ``forest`` hold
     for _ in range(6):
-        deg, br = _branches(rc, alive, edges)
+        deg, br = _branches(alive, edges, forest, comp)
         drop = np.zeros(n, bool)
         for a, b, pix in br:
             leaf_a, leaf_b = deg[a] == 1, deg[b] == 1
@@ -140,16 +165,19 @@ def skeleton_graph(mask: np.ndarray, spur_px: float, merge_px: float, min_compon
         alive &= ~drop
         edges = edges[alive[edges[:, 0]] & alive[edges[:, 1]]]
     else:  # pruned six times: the branches of what is left (after a break they are those of the last pass)
-        deg, br = _branches(rc, alive, edges)
+        deg, br = _branches(alive, edges, forest, comp)
     node_pix = np.nonzero(alive & (deg != 2) & (deg > 0))[0]
     if len(node_pix) == 0:
         return empty
     # merge junctions joined by short branches
-    pos = {int(p): k for k, p in enumerate(node_pix)}
-    short = [(pos[a], pos[b]) for a, b, pix in br if deg[a] >= 3 and deg[b] >= 3 and _path_length(rc, pix) < merge_px]
     K0 = len(node_pix)
-    se = np.array(short, np.int64).reshape(-1, 2)
-    _, group = connected_components(_csr(K0, se), directed=False)
+    short = [(a, b) for a, b, pix in br if deg[a] >= 3 and deg[b] >= 3 and _path_length(rc, pix) < merge_px]
+    if short:
+        se = np.searchsorted(node_pix, np.array(short, np.int64))
+        g = csr_matrix((np.ones(len(se)), (se[:, 0], se[:, 1])), shape=(K0, K0))
+        _, group = connected_components(g, directed=False)
+    else:
+        group = np.arange(K0)
     G = group.max() + 1
     cnt = np.bincount(group, minlength=G)
     mean_rc = np.stack([np.bincount(group, rc[node_pix, i], minlength=G) for i in range(2)], 1) / cnt[:, None]
@@ -158,17 +186,21 @@ def skeleton_graph(mask: np.ndarray, spur_px: float, merge_px: float, min_compon
     order = np.lexsort((dev, group))
     rep[group[order[::-1]]] = node_pix[order[::-1]]
     kind = np.where(deg[rep] >= 3, JUNCTION, LEAF).astype(np.int64)
+    ends = np.array([(a, b) for a, b, _ in br], np.int64).reshape(-1, 2)
+    gends = group[np.searchsorted(node_pix, ends)]
     branches: list[tuple[int, int, np.ndarray]] = []
-    for a, b, pix in br:
-        ga, gb = group[pos[a]], group[pos[b]]
+    for (ga, gb), (_, _, pix) in zip(gends, br, strict=True):
         if ga == gb:
             continue
         p = rc[pix].astype(np.float64)
         p[0], p[-1] = rc[rep[ga]], rc[rep[gb]]
         branches.append((int(ga), int(gb), p))
-    _, comp = connected_components(_csr(n, edges), directed=False)
-    csize = np.bincount(comp[rep], minlength=comp.max() + 1)
-    rank = np.argsort(-csize, kind="stable")
+    # components ranked by node count, ties by their first alive pixel (raster order)
+    live = np.nonzero(alive)[0]
+    first = np.full(ncomp, n)
+    first[comp[live[::-1]]] = live[::-1]
+    csize = np.bincount(comp[rep], minlength=ncomp)
+    rank = np.lexsort((first, -csize))
     relabel = np.empty_like(rank)
     relabel[rank] = np.arange(len(rank))
     return SkeletonGraph(rc[rep].astype(np.float64), kind, branches, relabel[comp[rep]])
