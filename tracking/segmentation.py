@@ -368,6 +368,45 @@ def select_largest_clusters(points: np.ndarray, labels: np.ndarray, params: Trac
     return points[ok & keep_label[np.maximum(labels, 0)]]
 
 
+def _within_box(points: np.ndarray, ref: np.ndarray, pad_m: float) -> np.ndarray:
+    """(N,) bool: points (N, 3) m inside the axis-aligned box of ref (R, 3) m grown by ``pad_m`` (m) on each side,
+    a cheap necessary condition for lying within pad_m of some ref point (the box is grown by a further
+    millionth of pad_m so that rounding never drops such a point)."""
+    if len(ref) == 0:
+        return np.zeros(len(points), bool)
+    pad = pad_m * (1.0 + 1e-6)
+    lo, hi = ref.min(axis=0) - pad, ref.max(axis=0) + pad
+    x, y, z = points.T  # per coordinate: a comparison of the (N, 3) array reduced over its rows is slower
+    return (x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1]) & (z >= lo[2]) & (z <= hi[2])
+
+
+def _near(points: np.ndarray, tree: cKDTree, r_m: float) -> np.ndarray:
+    """(N,) bool: points (N, 3) m within r_m (m) of some point of the KD-tree ``tree``."""
+    return np.isfinite(tree.query(points, distance_upper_bound=r_m)[0])
+
+
+def _clusters_near(
+    points: np.ndarray, labels: np.ndarray, wanted: np.ndarray, ref: np.ndarray, r_m: float, stride: int = 8
+) -> np.ndarray:
+    """(L,) bool: which of the ``wanted`` (L,) bool clusters have a point within r_m (m) of some ref (R, 3) m.
+
+    points: (N, 3) m; labels: (N,) int64 cluster (-1: noise), L = len(wanted). Only points inside ref's box
+    grown by r_m can be near; every ``stride``-th of them is tested first (a cluster near ref is mostly found
+    by a few of its points), then all those of the clusters not found yet: the answer of testing every point.
+    """
+    near = np.zeros(len(wanted), bool)
+    if not wanted.any():
+        return near
+    idx = np.flatnonzero((labels >= 0) & wanted[np.maximum(labels, 0)] & _within_box(points, ref, r_m))
+    if len(idx) == 0:
+        return near
+    tree = cKDTree(ref)
+    for part in (idx[::stride], idx):
+        part = part[~near[labels[part]]]
+        near[labels[part[_near(points[part], tree, r_m)]]] = True
+    return near
+
+
 def select_clusters_near(
     points: np.ndarray, labels: np.ndarray, keypoints: np.ndarray, params: TrackingParams,
     support: tuple[np.ndarray, float] | None = None, samples: np.ndarray | None = None,
@@ -384,12 +423,10 @@ def select_clusters_near(
     ok = labels >= 0
     if len(keypoints) == 0 or len(points) == 0:
         return np.zeros((0, 3))
-    sizes = np.bincount(labels[ok]) if ok.any() else np.zeros(0, np.int64)
-    d, _ = cKDTree(keypoints).query(points[ok], distance_upper_bound=params.track_gate_m)
-    near = np.bincount(labels[ok], weights=np.isfinite(d).astype(np.float64), minlength=len(sizes)) > 0
-    big = sizes >= params.min_cluster_points
+    big = (np.bincount(labels[ok]) if ok.any() else np.zeros(0, np.int64)) >= params.min_cluster_points
+    near = _clusters_near(points, labels, big, keypoints, params.track_gate_m)
     keep = np.zeros(len(points), bool)
-    keep[ok] = (near & big)[labels[ok]]
+    keep[ok] = near[labels[ok]]
     loose = ~keep
     loose[ok] &= ~big[labels[ok]]
     if support is not None:
@@ -397,17 +434,19 @@ def select_clusters_near(
     if params.track_attach_m <= 0 or not loose.any():
         return points[keep]
     ref = keypoints if samples is None else samples
-    # only loose points near the object at all can be near an uncovered part of it: the coverage test (a
-    # KD-tree of every kept point) runs only when there are some
-    cand = np.flatnonzero(loose)
-    cand = cand[np.isfinite(cKDTree(ref).query(points[cand], distance_upper_bound=params.track_attach_m)[0])]
+    attach = params.track_attach_m
+    # the left-out points near the object at all, and the parts of the object near them: only these parts'
+    # coverage by the kept clusters (a KD-tree of the kept points beside them) can decide anything
+    cand = np.flatnonzero(loose & _within_box(points, ref, attach))
+    cand = cand[_near(points[cand], cKDTree(ref), attach)]
     if len(cand) == 0:
         return points[keep]
-    if keep.any():
-        ref = ref[~np.isfinite(cKDTree(points[keep]).query(ref, distance_upper_bound=params.dbscan_eps_m)[0])]
+    ref = ref[_near(ref, cKDTree(points[cand]), attach)]
+    kept = points[keep & _within_box(points, ref, params.dbscan_eps_m)]
+    if len(kept):
+        ref = ref[~_near(ref, cKDTree(kept), params.dbscan_eps_m)]
     if len(ref):
-        d, _ = cKDTree(ref).query(points[cand], distance_upper_bound=params.track_attach_m)
-        keep[cand[np.isfinite(d)]] = True
+        keep[cand[_near(points[cand], cKDTree(ref), attach)]] = True
     return points[keep]
 
 
@@ -865,9 +904,10 @@ def behind_near_object(
     if len(object_points) == 0 or not out.any():
         return out & False
     pts, rc = depth_to_points(depth, K, T_world_cam, out)
-    d = cKDTree(object_points).query(pts, distance_upper_bound=params.background_object_gap_m)[0]
+    gap = params.background_object_gap_m
+    box = np.flatnonzero(_within_box(pts, object_points, gap))
+    near = box[_near(pts[box], cKDTree(object_points), gap)]
     out[:] = False
-    near = np.isfinite(d)
     out[rc[near, 0], rc[near, 1]] = True
     return out
 
