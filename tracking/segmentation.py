@@ -18,7 +18,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 import open3d as o3d
-from scipy.sparse import coo_matrix
+from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
@@ -304,16 +304,17 @@ def dbscan_labels(points: np.ndarray, eps_m: float, min_points: int) -> np.ndarr
     A point is core when at least ``min_points`` points (itself included) lie within ``eps_m``;
     clusters are the connected components of core points linked within eps_m, and a non-core
     point within eps_m of a core point joins (one of) its cluster(s). Vectorised: one KD-tree pair
-    query and a sparse connected-components pass (open3d's DBSCAN costs ~3x more here).
+    query and a sparse connected-components pass (open3d's DBSCAN costs ~3x more here). The KD-tree is
+    built unbalanced (split at the cell's middle, not the points' median): quicker to build, and the pair
+    query is no slower.
     """
     n = len(points)
     if n == 0:
         return np.zeros(0, np.int64)
-    pairs = cKDTree(points).query_pairs(eps_m, output_type="ndarray")
+    pairs = cKDTree(points, balanced_tree=False).query_pairs(eps_m, output_type="ndarray")
     core = np.bincount(pairs.ravel(), minlength=n) + 1 >= min_points
     cc = pairs[core[pairs[:, 0]] & core[pairs[:, 1]]]
-    graph = coo_matrix((np.ones(len(cc), np.int8), (cc[:, 0], cc[:, 1])), shape=(n, n))
-    _, comp = connected_components(graph, directed=False)
+    _, comp = connected_components(_graph(cc, n), directed=False)
     lab = np.where(core, comp, -1).astype(np.int64)
     border = pairs[core[pairs[:, 0]] != core[pairs[:, 1]]]
     src = np.where(core[border[:, 0]], border[:, 0], border[:, 1])
@@ -322,6 +323,15 @@ def dbscan_labels(points: np.ndarray, eps_m: float, min_points: int) -> np.ndarr
     ok = lab >= 0
     lab[ok] = np.unique(lab[ok], return_inverse=True)[1]
     return lab
+
+
+def _graph(edges: np.ndarray, n: int) -> csr_matrix:
+    """The (n, n) float64 CSR adjacency matrix of edges (E, 2) int64 (row, column), built directly: its rows
+    ordered by a stable sort, so that ``connected_components`` takes it as it is (from COO it converts)."""
+    order = np.argsort(edges[:, 0], kind="stable")
+    indptr = np.zeros(n + 1, np.int64)
+    np.cumsum(np.bincount(edges[:, 0], minlength=n), out=indptr[1:])
+    return csr_matrix((np.ones(len(edges)), edges[order, 1], indptr), shape=(n, n))
 
 
 def voxel_groups(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
