@@ -20,8 +20,9 @@ def depth_to_points(
     valid = depth > 0
     if mask is not None:
         valid &= mask
-    rows, cols = np.nonzero(valid)
-    z = depth[rows, cols].astype(np.float64)
+    idx = np.flatnonzero(valid)  # flat indices: quicker than a 2D nonzero and gather
+    rows, cols = np.divmod(idx, depth.shape[1])
+    z = depth.ravel()[idx].astype(np.float64)
     x = (cols - K[0, 2]) * z / K[0, 0]
     y = (rows - K[1, 2]) * z / K[1, 1]
     pc = np.stack([x, y, z], axis=1)
