@@ -11,6 +11,9 @@ from scipy.spatial import cKDTree
 
 from tracking.params import TrackingParams
 
+EdgeClassPlan = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]
+"""One colour class of ``edge_plan``: (ends, w, wsum, movable, rest)."""
+
 
 def edge_colouring(edges: np.ndarray, n_vertices: int) -> list[np.ndarray]:
     """Greedy edge colouring of edges (E, 2) int -> list of index arrays into edges, one per colour.
@@ -34,23 +37,36 @@ def edge_colouring(edges: np.ndarray, n_vertices: int) -> list[np.ndarray]:
 
 def edge_plan(
     edges: np.ndarray, rest: np.ndarray, inv_mass: np.ndarray, classes: list[np.ndarray]
-) -> list[tuple[np.ndarray, ...]]:
+) -> list[EdgeClassPlan]:
     """What ``project_edges`` needs of each colour class and does not change between sweeps: per class of C
     edges (ends (2C,) int64: the first endpoints then the second ones, w (2, C, 1) their inverse masses, the
-    second ones negated, wsum (C,), movable (C,) bool wsum > 0, rest (C,) m), so a sweep indexes only the
-    keypoints, once."""
+    second ones negated, wsum (C,), movable (C,) bool wsum > 0 or None when every edge of the class has a free
+    endpoint, rest (C,) m), so a sweep indexes only the keypoints, once."""
     plan = []
     for cls in classes:
         i, j = edges[cls, 0], edges[cls, 1]
         wi, wj = inv_mass[i], inv_mass[j]
         wsum = wi + wj
-        plan.append((np.concatenate([i, j]), np.stack([wi, -wj])[:, :, None], wsum, wsum > 0, rest[cls]))
+        movable = wsum > 0
+        plan.append(
+            (
+                np.concatenate([i, j]),
+                np.stack([wi, -wj])[:, :, None],
+                wsum,
+                None if movable.all() else movable,
+                rest[cls],
+            )
+        )
     return plan
 
 
 def project_edges(
-    X: np.ndarray, edges: np.ndarray, rest: np.ndarray, inv_mass: np.ndarray, classes: list[np.ndarray],
-    plan: list[tuple[np.ndarray, ...]] | None = None,
+    X: np.ndarray,
+    edges: np.ndarray,
+    rest: np.ndarray,
+    inv_mass: np.ndarray,
+    classes: list[np.ndarray],
+    plan: list[EdgeClassPlan] | None = None,
 ) -> None:
     """One Gauss-Seidel sweep of edge-length projection, in place.
 
@@ -64,10 +80,10 @@ def project_edges(
         P = X[ends]  # a class's edges share no keypoint: its first endpoints, then its second ones
         d = P[C:] - P[:C]
         L = np.sqrt(np.add.reduce(d * d, axis=1))  # np.linalg.norm(d, axis=1), without its checks
-        ok = movable & (L > 1e-12)
-        if ok.all():
+        if movable is None and np.minimum.reduce(L) > 1e-12:
             s = ((L - r) / (L * wsum))[:, None] * d
-        else:
+        else:  # an edge too short to have a direction or with both endpoints fixed stays
+            ok = L > 1e-12 if movable is None else movable & (L > 1e-12)
             s = np.where(ok, (L - r) / np.where(ok, L * wsum, 1.0), 0.0)[:, None] * d
         X[ends] = P + (w * s).reshape(2 * C, 3)  # first endpoints + wi s, second ones - wj s
 
@@ -90,31 +106,29 @@ def project_to_cloud(
     restricted to the local extent of the cloud (``extent_projectors`` of the k nearest points) and
     clamped to ``max_slide_m``; keypoints then slide below the cloud's point spacing instead of
     sticking to voxel centres. cache: a dict the caller passes to every call of one solve (the same
-    points X, moving): a point's projector is computed again only when its k nearest cloud points change.
+    points X, moving): a point's projector is computed again only when its k nearest cloud points change,
+    in place in the cached (n, 3, 3) array.
     """
     pts = tree.data
     if k <= 1:
         return pts[tree.query(X)[1]]
     k = min(k, tree.n)
-    _, nn = tree.query(X, k=k)
-    nn = nn.reshape(len(X), k)
-    nb = pts[nn]
-    prev = cache.get("members") if cache is not None else None
+    nn = tree.query(X, k=k)[1].reshape(len(X), k)
     members = np.sort(nn, axis=1)  # a projector depends on the set of neighbours, not their order
+    prev = cache.get("members") if cache is not None else None
     if prev is not None and prev.shape == members.shape:
         proj = cache["projectors"]
-        redo = np.nonzero((members != prev).any(axis=1))[0]
+        redo = np.logical_or.reduce(members != prev, axis=1).nonzero()[0]
         if len(redo):
-            proj = proj.copy()
-            proj[redo] = extent_projectors(nb[redo])
+            proj[redo] = extent_projectors(pts[nn[redo]])
     else:
-        proj = extent_projectors(nb)
+        proj = extent_projectors(pts[nn])
     if cache is not None:
         cache["members"], cache["projectors"] = members, proj
-    p = nb[:, 0]
+    p = pts[nn[:, 0]]
     off = np.einsum("nj,nij->ni", X - p, proj)
     n = np.sqrt(np.add.reduce(off * off, axis=1))[:, None]
-    off *= np.minimum(1.0, max_slide_m / np.maximum(n, 1e-12))
+    off *= max_slide_m / np.maximum(n, max(max_slide_m, 1e-12))  # 1 (exactly) up to max_slide_m
     return p + off
 
 
@@ -154,8 +168,6 @@ def solve_keypoints(
     if use_anchors:
         inv_mass[hard_idx] = 0.0
         X[anchor_idx] = anchor_pos
-    free = inv_mass > 0
-    all_free = bool(free.all())
     if classes is None:
         classes = edge_colouring(edges, N)
     plan = edge_plan(edges, rest, inv_mass, classes)
@@ -163,16 +175,20 @@ def solve_keypoints(
     if params.use_cloud_projection:
         tree = cloud if isinstance(cloud, cKDTree) else (cKDTree(cloud) if len(cloud) else None)
     cache: dict[str, np.ndarray] = {}  # the cloud projection's local extents, reused while the neighbours stay
+    edge_pass = params.use_edge_projection and len(edges) > 0
+    soft_pass = use_anchors and len(soft_idx) > 0
+    hard_pass = use_anchors and len(hard_idx) > 0
     for _ in range(iterations):
-        if params.use_edge_projection and len(edges):
+        if edge_pass:
             project_edges(X, edges, rest, inv_mass, classes, plan)
         if tree is not None:
-            if all_free:  # X is this function's own array: rebinding it is the in-place update
-                X = project_to_cloud(X, tree, params.surface_k, params.surface_slide_m, cache)
-            else:
-                X[free] = project_to_cloud(X[free], tree, params.surface_k, params.surface_slide_m, cache)
-        if use_anchors:
-            X[soft_idx] += soft_w * (soft_pos - X[soft_idx])
+            # every keypoint, the fixed ones too: they are put back on their anchors below, and a point's
+            # projection does not depend on the others
+            X = project_to_cloud(X, tree, params.surface_k, params.surface_slide_m, cache)
+        if soft_pass:
+            Xs = X[soft_idx]
+            X[soft_idx] = Xs + soft_w * (soft_pos - Xs)
+        if hard_pass:
             X[hard_idx] = hard_pos
     return X
 
@@ -189,7 +205,12 @@ def chain_tangents(X: np.ndarray, chains: list[np.ndarray]) -> np.ndarray:
 
 
 def centre_on_ridge(
-    X: np.ndarray, tangents: np.ndarray, tree: cKDTree, eye: np.ndarray, radius_m: float, k: int = 96,
+    X: np.ndarray,
+    tangents: np.ndarray,
+    tree: cKDTree,
+    eye: np.ndarray,
+    radius_m: float,
+    k: int = 96,
     band_m: float = 0.003,
 ) -> np.ndarray:
     """Move points X (n, 3) m on a tube's visible skin to its ridge (the line nearest the camera).
