@@ -16,6 +16,7 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 from drivers.config import ArmConfig, CameraConfig, GripperConfig, SimObjectConfig, StrictModel
 from orchestrator.zenoh_security import BusAclConfig, BusTlsConfig, check_endpoints
 from tdcommon.objects import Category
+from tracking.params import TrackingParams
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 DEFAULT_CONFIG = CONFIG_DIR / "mock.yaml"
@@ -145,13 +146,15 @@ class TrackingConfig(StrictModel):
     """The tracking worker and the TrackDeform3D parameters that a lab may tune."""
 
     enabled: bool = True
-    voxel_size: float = Field(0.004, gt=0.0005, le=0.05, description="down-sampling voxel, m")
-    solver_iterations: int = Field(30, ge=1, le=1000)
+    voxel_size: float = Field(TrackingParams.voxel_m, gt=0.0005, le=0.05, description="down-sampling voxel, m")
+    solver_iterations: int = Field(TrackingParams.track_iterations, ge=1, le=1000, description="solver sweeps a frame")
     use_anchors: bool = Field(True, description="ablation: anchor constraints")
     use_edge_projection: bool = Field(True, description="ablation: edge-length projection")
     use_cloud_projection: bool = Field(True, description="ablation: projection onto the cloud")
-    live_window: int = Field(3, ge=1, le=31, description="causal moving-average window, frames")
-    final_window: int = Field(5, ge=1, le=31, description="symmetric moving-average window, frames (odd)")
+    live_window: int = Field(
+        TrackingParams.causal_window, ge=1, le=31, description="causal moving-average window, frames")
+    final_window: int = Field(
+        TrackingParams.symmetric_window, ge=1, le=31, description="symmetric moving-average window, frames (odd)")
     worker_start_timeout: float = Field(
         90.0, gt=0.0, le=3600.0, description="s a started worker may take to declare its liveliness token")
     worker_max_lag: float = Field(

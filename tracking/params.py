@@ -163,7 +163,7 @@ class TrackingParams:
     grid_cols: int = 6
 
     init_iterations: int = 100
-    track_iterations: int = 20
+    track_iterations: int = 30
     use_anchors: bool = True
     use_edge_projection: bool = True
     use_cloud_projection: bool = True
