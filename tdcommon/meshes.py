@@ -82,12 +82,6 @@ def sheet_mesh(grid: np.ndarray, half_thickness: float = 0.0) -> Mesh:
     return np.concatenate([top, bottom]), np.concatenate([face_top, face_bottom, rim]).astype(np.int32)
 
 
-def transform_mesh(mesh: Mesh, T: np.ndarray) -> Mesh:
-    """``mesh`` moved by the rigid transform ``T`` (4, 4): vertices T·v, the same triangles."""
-    v, f = mesh
-    return np.asarray(v) @ T[:3, :3].T + T[:3, 3], f
-
-
 def merge_meshes(meshes: Sequence[Mesh]) -> Mesh:
     """One triangle soup from several meshes: vertices (V, 3) float64, triangles (F, 3) int32."""
     if not meshes:

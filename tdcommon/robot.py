@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tdcommon.meshes import box_mesh, merge_meshes, transform_mesh
+from tdcommon.meshes import box_mesh, merge_meshes
 from tdcommon.transforms import pose_to_input
 
 TCP_FRAME = "panda_hand_tcp"
@@ -225,6 +225,4 @@ def hand_mesh(T_world_tcp: np.ndarray, finger_width: float = 0.08) -> tuple[np.n
     q0 = np.array(HOME_Q)
     poses = kin.joint_poses(q0, finger_width)
     T_world_base = np.asarray(T_world_tcp) @ np.linalg.inv(kin.tcp_pose(q0))
-    links = [link for link in panda_link_meshes() if link.joint_index in HAND_JOINTS]
-    T = [T_world_base @ poses[link.joint_index] @ link.placement for link in links]
-    return merge_meshes([transform_mesh((link.vertices, link.triangles), t) for link, t in zip(links, T, strict=True)])
+    return panda_link_soup(HAND_JOINTS).posed(T_world_base @ poses)

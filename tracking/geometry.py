@@ -7,6 +7,18 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from scipy.sparse import csr_matrix
+
+
+def csr_graph(edges: np.ndarray, n: int, weights: np.ndarray | None = None) -> csr_matrix:
+    """The (n, n) CSR adjacency matrix of edges (E, 2) int (row, column) with weights (E,) (default 1.0), built
+    directly, rows ordered by a stable sort (from (row, column) pairs scipy goes through COO): what scipy's
+    graph routines take as it is."""
+    order = np.argsort(edges[:, 0], kind="stable")
+    indptr = np.zeros(n + 1, np.int64)
+    np.cumsum(np.bincount(edges[:, 0], minlength=n), out=indptr[1:])
+    w = np.ones(len(edges)) if weights is None else weights[order]
+    return csr_matrix((w, edges[order, 1], indptr), shape=(n, n))
 
 
 def depth_to_points(

@@ -18,11 +18,11 @@ from functools import lru_cache
 import cv2
 import numpy as np
 import open3d as o3d
-from scipy.sparse import coo_matrix, csr_matrix
+from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from tracking.geometry import depth_to_points, pixel_mask
+from tracking.geometry import csr_graph, depth_to_points, pixel_mask
 from tracking.params import TrackingParams
 
 
@@ -314,7 +314,7 @@ def dbscan_labels(points: np.ndarray, eps_m: float, min_points: int) -> np.ndarr
     pairs = cKDTree(points, balanced_tree=False).query_pairs(eps_m, output_type="ndarray")
     core = np.bincount(pairs.ravel(), minlength=n) + 1 >= min_points
     cc = pairs[core[pairs[:, 0]] & core[pairs[:, 1]]]
-    _, comp = connected_components(_graph(cc, n), directed=False)
+    _, comp = connected_components(csr_graph(cc, n), directed=False)
     lab = np.where(core, comp, -1).astype(np.int64)
     border = pairs[core[pairs[:, 0]] != core[pairs[:, 1]]]
     src = np.where(core[border[:, 0]], border[:, 0], border[:, 1])
@@ -323,15 +323,6 @@ def dbscan_labels(points: np.ndarray, eps_m: float, min_points: int) -> np.ndarr
     ok = lab >= 0
     lab[ok] = np.unique(lab[ok], return_inverse=True)[1]
     return lab
-
-
-def _graph(edges: np.ndarray, n: int) -> csr_matrix:
-    """The (n, n) float64 CSR adjacency matrix of edges (E, 2) int64 (row, column), built directly: its rows
-    ordered by a stable sort, so that ``connected_components`` takes it as it is (from COO it converts)."""
-    order = np.argsort(edges[:, 0], kind="stable")
-    indptr = np.zeros(n + 1, np.int64)
-    np.cumsum(np.bincount(edges[:, 0], minlength=n), out=indptr[1:])
-    return csr_matrix((np.ones(len(edges)), edges[order, 1], indptr), shape=(n, n))
 
 
 def voxel_groups(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:

@@ -9,6 +9,8 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components, dijkstra, minimum_spanning_tree
 from skimage.morphology import skeletonize
 
+from tracking.geometry import csr_graph
+
 LEAF = 0
 JUNCTION = 1
 
@@ -56,9 +58,7 @@ def spanning_forest(n: int, edges: np.ndarray, weights: np.ndarray) -> csr_matri
     edges: (Q, 2) int (i, j), i < j, sorted by i then j (``pixel_graph``'s order); weights: (Q,).
     Returns the forest as an (n, n) CSR matrix, each edge stored once as (i, j) with its weight.
     """
-    indptr = np.concatenate([[0], np.cumsum(np.bincount(edges[:, 0], minlength=n))])
-    g = csr_matrix((weights, edges[:, 1], indptr), shape=(n, n))  # the sorted edges are its CSR order
-    return minimum_spanning_tree(g, overwrite=True)
+    return minimum_spanning_tree(csr_graph(edges, n, weights), overwrite=True)
 
 
 def _edges(forest: csr_matrix) -> np.ndarray:
