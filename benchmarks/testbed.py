@@ -32,7 +32,8 @@ which ``trackdeform eval`` cannot show on sequences without ground truth.
 
 The default set (``--set all``) is the five-sequence development set plus the variants below (camera
 from the side and from above, rope lengths 0.8-1.0 m, radii 4-7 mm, colours, the three speeds, other
-seeds); generating it the first time takes ~16 min and ~3 GB, tracking and scoring it ~6 min here.
+seeds); generating it the first time takes ~40 min and ~4 GB (~3.5 min a sequence), tracking and scoring it
+~8 min here.
 """
 
 from __future__ import annotations
@@ -61,6 +62,8 @@ DEV: list[dict[str, Any]] = [
 SIDE = [1.05, 0.55, 0.55, 0.45, -0.45, 0.20]
 ABOVE = [0.95, -0.45, 1.45, 0.45, -0.45, 0.10]
 OBLIQUE = [1.35, -0.05, 0.85, 0.50, -0.45, 0.15]
+FRONT_LOW = [1.25, -0.45, 0.60, 0.45, -0.45, 0.15]
+OBLIQUE_RIGHT = [1.2, -0.95, 1.0, 0.45, -0.40, 0.15]
 VARIANTS: list[dict[str, Any]] = [
     dict(name="rope_side_long_thin", obj="rope", speed="medium", seconds=5, seed=11, camera=SIDE, length=1.0,
          radius=0.004, rgb=[0.15, 0.3, 0.85]),
@@ -79,6 +82,15 @@ VARIANTS: list[dict[str, Any]] = [
          branch_len=0.22),
     dict(name="rope_medium_cam2", obj="rope", speed="medium", seconds=6, seed=44, camera=OBLIQUE, length=0.95,
          radius=0.0065, rgb=[0.7, 0.3, 0.1]),
+    dict(name="rope_slow_front", obj="rope", speed="slow", seconds=5, seed=52, camera=FRONT_LOW, length=0.95,
+         radius=0.0045, rgb=[0.85, 0.15, 0.15]),
+    dict(name="bdlo_medium_obl2", obj="bdlo", speed="medium", seconds=5, seed=53, camera=OBLIQUE_RIGHT,
+         branch_len=0.28),
+    dict(name="bdlo_fast_s54", obj="bdlo", speed="fast", seconds=5, seed=54),
+    dict(name="cloth_slow_s55", obj="cloth", speed="slow", seconds=5, seed=55),
+    dict(name="cloth_medium_obl2", obj="cloth", speed="medium", seconds=5, seed=56, camera=OBLIQUE_RIGHT),
+    dict(name="rope_fast_samecolor", obj="rope", speed="fast", seconds=5, seed=57, samecolor=True, length=0.85,
+         radius=0.006),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
