@@ -386,6 +386,16 @@ def _near(points: np.ndarray, tree: cKDTree, r_m: float) -> np.ndarray:
     return np.isfinite(tree.query(points, distance_upper_bound=r_m)[0])
 
 
+def _near_points(points: np.ndarray, ref: np.ndarray, r_m: float) -> np.ndarray:
+    """(N,) bool: points (N, 3) m within r_m (m) of some ref (R, 3) m; only those inside ref's box grown by r_m
+    are queried, in a KD-tree of ref."""
+    near = _within_box(points, ref, r_m)
+    box = np.flatnonzero(near)
+    if len(box):
+        near[box] = _near(points[box], cKDTree(ref), r_m)
+    return near
+
+
 def _clusters_near(
     points: np.ndarray, labels: np.ndarray, wanted: np.ndarray, ref: np.ndarray, r_m: float, stride: int = 8
 ) -> np.ndarray:
@@ -438,8 +448,8 @@ def select_clusters_near(
     attach = params.track_attach_m
     # the left-out points near the object at all, and the parts of the object near them: only these parts'
     # coverage by the kept clusters (a KD-tree of the kept points beside them) can decide anything
-    cand = np.flatnonzero(loose & _within_box(points, ref, attach))
-    cand = cand[_near(points[cand], cKDTree(ref), attach)]
+    cand = np.flatnonzero(loose)
+    cand = cand[_near_points(points[cand], ref, attach)]
     if len(cand) == 0:
         return points[keep]
     ref = ref[_near(ref, cKDTree(points[cand]), attach)]
@@ -905,9 +915,7 @@ def behind_near_object(
     if len(object_points) == 0 or not out.any():
         return out & False
     pts, rc = depth_to_points(depth, K, T_world_cam, out)
-    gap = params.background_object_gap_m
-    box = np.flatnonzero(_within_box(pts, object_points, gap))
-    near = box[_near(pts[box], cKDTree(object_points), gap)]
+    near = _near_points(pts, object_points, params.background_object_gap_m)
     out[:] = False
     out[rc[near, 0], rc[near, 1]] = True
     return out

@@ -174,8 +174,7 @@ def skeleton_graph(mask: np.ndarray, spur_px: float, merge_px: float, min_compon
     short = [(a, b) for a, b, pix in br if deg[a] >= 3 and deg[b] >= 3 and _path_length(rc, pix) < merge_px]
     if short:
         se = np.searchsorted(node_pix, np.array(short, np.int64))
-        g = csr_matrix((np.ones(len(se)), (se[:, 0], se[:, 1])), shape=(K0, K0))
-        _, group = connected_components(g, directed=False)
+        _, group = connected_components(csr_graph(se, K0), directed=False)
     else:
         group = np.arange(K0)
     G = group.max() + 1
