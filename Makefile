@@ -10,20 +10,25 @@ DEMO_ARGS ?=
 TEST_WORKERS ?= auto
 PYTEST := $(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile
 
-.PHONY: demo test test-quick lint bench system-deps clean docker-build docker-check
+.PHONY: demo test test-quick kernels lint bench system-deps clean docker-build docker-check
 
 demo: $(STAMP)
 	$(BIN)/trackdeform demo $(DEMO_ARGS)
 
-test: $(STAMP)
+test: $(STAMP) kernels
 	$(BIN)/ruff check .
 	$(BIN)/lint-imports
 	$(PYTEST)
 
-test-quick: $(STAMP)
+test-quick: $(STAMP) kernels
 	$(BIN)/ruff check .
 	$(BIN)/lint-imports
 	$(PYTEST) -m "not slow"
+
+# Compile the numba kernels once (~15 s on a new machine, cached beside the code) before the test processes
+# would each compile them.
+kernels: $(STAMP)
+	$(BIN)/python -c "from tracking.kernels import warm_up; warm_up()"
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -1,7 +1,7 @@
 """Algorithm 1: Gauss-Seidel iterative projection (edge lengths, point cloud, anchors).
 
-Edges are greedily coloured so that no two edges of a colour class share a vertex; projecting a
-whole class at once is then exactly the sequential Gauss-Seidel sweep over that class.
+Edges are greedily coloured so that no two edges of a colour class share a vertex, and swept class by
+class; the iterations run compiled (``tracking.kernels.solve_iterations``).
 """
 
 from __future__ import annotations
@@ -9,10 +9,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from tracking.kernels import solve_iterations
 from tracking.params import TrackingParams
-
-EdgeClassPlan = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]
-"""One colour class of ``edge_plan``: (ends, w, wsum, movable, rest)."""
 
 
 def edge_colouring(edges: np.ndarray, n_vertices: int) -> list[np.ndarray]:
@@ -33,103 +31,6 @@ def edge_colouring(edges: np.ndarray, n_vertices: int) -> list[np.ndarray]:
     if len(edges) == 0:
         return []
     return [np.nonzero(colour == c)[0] for c in range(int(colour.max()) + 1)]
-
-
-def edge_plan(
-    edges: np.ndarray, rest: np.ndarray, inv_mass: np.ndarray, classes: list[np.ndarray]
-) -> list[EdgeClassPlan]:
-    """What ``project_edges`` needs of each colour class and does not change between sweeps: per class of C
-    edges (ends (2C,) int64: the first endpoints then the second ones, w (2, C, 1) their inverse masses, the
-    second ones negated, wsum (C,), movable (C,) bool wsum > 0 or None when every edge of the class has a free
-    endpoint, rest (C,) m), so a sweep indexes only the keypoints, once."""
-    plan = []
-    for cls in classes:
-        i, j = edges[cls, 0], edges[cls, 1]
-        wi, wj = inv_mass[i], inv_mass[j]
-        wsum = wi + wj
-        movable = wsum > 0
-        plan.append(
-            (
-                np.concatenate([i, j]),
-                np.stack([wi, -wj])[:, :, None],
-                wsum,
-                None if movable.all() else movable,
-                rest[cls],
-            )
-        )
-    return plan
-
-
-def project_edges(
-    X: np.ndarray,
-    edges: np.ndarray,
-    rest: np.ndarray,
-    inv_mass: np.ndarray,
-    classes: list[np.ndarray],
-    plan: list[EdgeClassPlan] | None = None,
-) -> None:
-    """One Gauss-Seidel sweep of edge-length projection, in place.
-
-    X: (N, 3) float64 m; edges: (E, 2) int; rest: (E,) m; inv_mass: (N,) 1 free, 0 fixed (anchor).
-    Each edge moves its free endpoints along the edge to length ``rest``, split by inverse mass
-    (half each when both are free, as projective dynamics eq. 8). plan: ``edge_plan`` of these
-    arguments when the caller sweeps many times (then edges, rest, inv_mass and classes are not read).
-    """
-    for ends, w, wsum, movable, r in plan if plan is not None else edge_plan(edges, rest, inv_mass, classes):
-        C = len(r)
-        P = X[ends]  # a class's edges share no keypoint: its first endpoints, then its second ones
-        d = P[C:] - P[:C]
-        L = np.sqrt(np.add.reduce(d * d, axis=1))  # np.linalg.norm(d, axis=1), without its checks
-        if movable is None and np.minimum.reduce(L) > 1e-12:
-            s = ((L - r) / (L * wsum))[:, None] * d
-        else:  # an edge too short to have a direction or with both endpoints fixed stays
-            ok = L > 1e-12 if movable is None else movable & (L > 1e-12)
-            s = np.where(ok, (L - r) / np.where(ok, L * wsum, 1.0), 0.0)[:, None] * d
-        X[ends] = P + (w * s).reshape(2 * C, 3)  # first endpoints + wi s, second ones - wj s
-
-
-def extent_projectors(nb: np.ndarray) -> np.ndarray:
-    """Projectors (n, 3, 3) onto the local extent of neighbourhoods nb (n, k, 3) m: the span of their principal
-    directions whose variance is at least 10 % of the largest (a surface's tangent plane, a line's tangent)."""
-    c = nb - np.add.reduce(nb, axis=1, keepdims=True) / nb.shape[1]  # nb.mean(axis=1), without its checks
-    lam, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", c, c))
-    keep = lam >= 0.1 * lam[:, -1:]
-    return np.einsum("nij,nj,nkj->nik", vec, keep, vec)
-
-
-def project_to_cloud(
-    X: np.ndarray, tree: cKDTree, k: int, max_slide_m: float, cache: dict[str, np.ndarray] | None = None
-) -> np.ndarray:
-    """Project points X (n, 3) m onto the cloud in the tree -> (n, 3) float64 m.
-
-    k <= 1: the nearest cloud point (the paper). Otherwise the nearest point plus the offset to X
-    restricted to the local extent of the cloud (``extent_projectors`` of the k nearest points) and
-    clamped to ``max_slide_m``; keypoints then slide below the cloud's point spacing instead of
-    sticking to voxel centres. cache: a dict the caller passes to every call of one solve (the same
-    points X, moving): a point's projector is computed again only when its k nearest cloud points change,
-    in place in the cached (n, 3, 3) array.
-    """
-    pts = tree.data
-    if k <= 1:
-        return pts[tree.query(X)[1]]
-    k = min(k, tree.n)
-    nn = tree.query(X, k=k)[1].reshape(len(X), k)
-    members = np.sort(nn, axis=1)  # a projector depends on the set of neighbours, not their order
-    prev = cache.get("members") if cache is not None else None
-    if prev is not None and prev.shape == members.shape:
-        proj = cache["projectors"]
-        redo = np.logical_or.reduce(members != prev, axis=1).nonzero()[0]
-        if len(redo):
-            proj[redo] = extent_projectors(pts[nn[redo]])
-    else:
-        proj = extent_projectors(pts[nn])
-    if cache is not None:
-        cache["members"], cache["projectors"] = members, proj
-    p = pts[nn[:, 0]]
-    off = np.einsum("nj,nij->ni", X - p, proj)
-    n = np.sqrt(np.add.reduce(off * off, axis=1))[:, None]
-    off *= max_slide_m / np.maximum(n, max(max_slide_m, 1e-12))  # 1 (exactly) up to max_slide_m
-    return p + off
 
 
 def solve_keypoints(
@@ -163,33 +64,25 @@ def solve_keypoints(
     w = np.ones(len(anchor_idx)) if anchor_weight is None else np.asarray(anchor_weight, np.float64).reshape(-1)
     hard = w >= 1.0
     hard_idx, hard_pos = anchor_idx[hard], anchor_pos[hard]
-    soft_idx, soft_pos, soft_w = anchor_idx[~hard], anchor_pos[~hard], w[~hard, None]
+    soft_idx, soft_pos, soft_w = anchor_idx[~hard], anchor_pos[~hard], w[~hard]
     inv_mass = np.ones(N)
     if use_anchors:
         inv_mass[hard_idx] = 0.0
         X[anchor_idx] = anchor_pos
     if classes is None:
         classes = edge_colouring(edges, N)
-    plan = edge_plan(edges, rest, inv_mass, classes)
-    tree = None
+    order = np.concatenate(classes) if params.use_edge_projection and len(classes) else np.zeros(0, np.int64)
+    first, second = edges[order, 0], edges[order, 1]
+    pts = np.zeros((0, 3))
     if params.use_cloud_projection:
-        tree = cloud if isinstance(cloud, cKDTree) else (cKDTree(cloud) if len(cloud) else None)
-    cache: dict[str, np.ndarray] = {}  # the cloud projection's local extents, reused while the neighbours stay
-    edge_pass = params.use_edge_projection and len(edges) > 0
-    soft_pass = use_anchors and len(soft_idx) > 0
-    hard_pass = use_anchors and len(hard_idx) > 0
-    for _ in range(iterations):
-        if edge_pass:
-            project_edges(X, edges, rest, inv_mass, classes, plan)
-        if tree is not None:
-            # every keypoint, the fixed ones too: they are put back on their anchors below, and a point's
-            # projection does not depend on the others
-            X = project_to_cloud(X, tree, params.surface_k, params.surface_slide_m, cache)
-        if soft_pass:
-            Xs = X[soft_idx]
-            X[soft_idx] = Xs + soft_w * (soft_pos - Xs)
-        if hard_pass:
-            X[hard_idx] = hard_pos
+        pts = cloud.data if isinstance(cloud, cKDTree) else np.asarray(cloud, np.float64).reshape(-1, 3)
+    if not use_anchors:
+        soft_idx, hard_idx = soft_idx[:0], hard_idx[:0]
+    solve_iterations(
+        X, first, second, inv_mass[first], inv_mass[second], rest[order], np.ascontiguousarray(pts, np.float64),
+        int(params.surface_k), float(params.surface_slide_m),
+        soft_idx, np.ascontiguousarray(soft_pos), soft_w, hard_idx, np.ascontiguousarray(hard_pos), int(iterations),
+    )
     return X
 
 

@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 
 from tracking.anchors import detect_anchors_1d, detect_anchors_2d
 from tracking.init import Initialisation, Topology, initialise
+from tracking.kernels import warm_up
 from tracking.metrics import chamfer_mm, edge_rmse_mm
 from tracking.params import TrackingParams
 from tracking.skeleton import LEAF
@@ -260,7 +261,9 @@ class Tracker:
     """Stateful wrapper: initialise on a segmented cloud, then ``step`` per frame (K, T_world_cam fixed)."""
 
     def __init__(self, params: TrackingParams, K: np.ndarray, T_world_cam: np.ndarray) -> None:
-        """params: TrackingParams; K: (3, 3) camera matrix; T_world_cam: (4, 4) camera pose in the world."""
+        """params: TrackingParams; K: (3, 3) camera matrix; T_world_cam: (4, 4) camera pose in the world.
+        Loads the compiled solver kernels here, not on the first frame (``tracking.kernels.warm_up``)."""
+        warm_up()
         self.params = params
         self.K = np.asarray(K, np.float64)
         self.T = np.asarray(T_world_cam, np.float64)

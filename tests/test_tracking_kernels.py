@@ -1,0 +1,104 @@
+"""The compiled solver iterations (tracking.kernels) against a plain numpy implementation of Algorithm 1."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from tracking.init import grid_topology
+from tracking.params import TrackingParams
+from tracking.solver import edge_colouring, solve_keypoints
+
+P = TrackingParams()
+
+
+def _reference_solve(
+    X0: np.ndarray, edges: np.ndarray, rest: np.ndarray, anchor_idx: np.ndarray, anchor_pos: np.ndarray,
+    cloud: np.ndarray, iterations: int, params: TrackingParams, anchor_weight: np.ndarray,
+) -> np.ndarray:
+    """Algorithm 1 in numpy: per colour class a batched edge projection, every keypoint to its k nearest cloud
+    points' local extent (a cKDTree), soft anchors pulled, hard anchors fixed."""
+    X = np.array(X0, np.float64)
+    hard = anchor_weight >= 1.0
+    inv_mass = np.ones(len(X))
+    inv_mass[anchor_idx[hard]] = 0.0
+    X[anchor_idx] = anchor_pos
+    tree = cKDTree(cloud)
+    k = min(params.surface_k, tree.n)
+    for _ in range(iterations):
+        for cls in edge_colouring(edges, len(X)):
+            i, j = edges[cls, 0], edges[cls, 1]
+            d = X[j] - X[i]
+            L = np.linalg.norm(d, axis=1)
+            wsum = inv_mass[i] + inv_mass[j]
+            ok = (wsum > 0) & (L > 1e-12)
+            s = np.where(ok, (L - rest[cls]) / np.where(ok, L * wsum, 1.0), 0.0)[:, None] * d
+            X[i] += inv_mass[i, None] * s
+            X[j] -= inv_mass[j, None] * s
+        nn = tree.query(X, k=k)[1].reshape(len(X), k)
+        nb = cloud[nn]
+        c = nb - nb.mean(axis=1, keepdims=True)
+        lam, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", c, c))
+        proj = np.einsum("nij,nj,nkj->nik", vec, lam >= 0.1 * lam[:, -1:], vec)
+        p = cloud[nn[:, 0]]
+        off = np.einsum("nj,nij->ni", X - p, proj)
+        n = np.linalg.norm(off, axis=1, keepdims=True)
+        X = p + off * (params.surface_slide_m / np.maximum(n, params.surface_slide_m))
+        soft = anchor_idx[~hard]
+        X[soft] += anchor_weight[~hard, None] * (anchor_pos[~hard] - X[soft])
+        X[anchor_idx[hard]] = anchor_pos[hard]
+    return X
+
+
+def _cloth_problem(seed: int) -> tuple[np.ndarray, ...]:
+    """A 6 x 6 grid over a bent, noisy 0.3 m sheet of points, warm-started off it."""
+    rng = np.random.default_rng(seed)
+    uv = rng.uniform(0.0, 0.3, (3000, 2))
+    cloud = np.stack([uv[:, 0], uv[:, 1], 0.05 * np.sin(8 * uv[:, 0])], axis=1) + rng.normal(0, 0.001, (3000, 3))
+    edges, rest = grid_topology(6, 6, 0.06, 0.06)
+    g = np.linspace(0.0, 0.3, 6)
+    gx, gy = np.meshgrid(g, g, indexing="ij")
+    X0 = np.stack([gx.ravel(), gy.ravel(), 0.05 * np.sin(8 * gx.ravel())], axis=1) + rng.normal(0, 0.01, (36, 3))
+    return X0, edges, rest, cloud
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_compiled_iterations_equal_numpy_reference(seed):
+    X0, edges, rest, cloud = _cloth_problem(seed)
+    idx = np.array([0, 5, 30])
+    pos = X0[idx] + 0.01
+    weight = np.array([1.0, 1.0, 0.3])  # two hard anchors, one soft
+    want = _reference_solve(X0, edges, rest, idx, pos, cloud, 30, P, weight)
+    got = solve_keypoints(X0, edges, rest, idx, pos, cloud, 30, P, anchor_weight=weight)
+    assert np.abs(got - want).max() < 1e-12
+    # a prebuilt tree gives the same, and the warm start is not modified
+    X0_copy = X0.copy()
+    assert np.array_equal(solve_keypoints(X0, edges, rest, idx, pos, cKDTree(cloud), 30, P, anchor_weight=weight), got)
+    assert np.array_equal(X0, X0_copy)
+
+
+def test_compiled_nearest_point_projection_and_far_moves():
+    """k = 1 puts keypoints on cloud points; a warm start far from where it ends (the candidate points gathered
+    again as keypoints travel) still finds the exact nearest points."""
+    X0, edges, rest, cloud = _cloth_problem(3)
+    X0 = X0 + np.array([0.0, 0.0, 0.2])  # 20 cm above the sheet
+    none, nowhere = np.zeros(0, int), np.zeros((0, 3))
+    got = solve_keypoints(X0, edges, rest, none, nowhere, cloud, 40, dataclasses.replace(P, surface_k=1))
+    d, _ = cKDTree(cloud).query(got)
+    assert d.max() < 1e-15
+    far = solve_keypoints(X0, edges, rest, none, nowhere, cloud, 40, P)
+    ref = _reference_solve(X0, edges, rest, none, nowhere, cloud, 40, P, np.zeros(0))
+    assert np.abs(far - ref).max() < 1e-12
+
+
+def test_compiled_iterations_without_cloud_or_edges():
+    X0, edges, rest, cloud = _cloth_problem(4)
+    no_cloud = solve_keypoints(X0, edges, rest, [0], X0[:1], np.zeros((0, 3)), 50, P)
+    assert np.abs(np.linalg.norm(no_cloud[edges[:, 0]] - no_cloud[edges[:, 1]], axis=1) - rest).max() < 1e-3
+    no_edges = solve_keypoints(X0, np.zeros((0, 2), int), np.zeros(0), [0], X0[:1], cloud, 5, P)
+    assert cKDTree(cloud).query(no_edges[1:])[0].max() < P.surface_slide_m + 1e-9
+    one_point = solve_keypoints(X0, edges, rest, [], np.zeros((0, 3)), cloud[:1], 3, P)
+    assert np.isfinite(one_point).all()

@@ -1,0 +1,209 @@
+"""Compiled inner loops (numba) of Algorithm 1's iterations.
+
+One solver iteration is a few hundred flops per keypoint; in numpy it is ~40 array calls and a KD-tree
+query, whose call overhead (~200 us an iteration, 30 iterations a frame) was most of the solve. These
+kernels do the same arithmetic in the same order per keypoint and edge, compiled once per machine
+(``cache=True`` keeps the machine code beside this file, or in ``NUMBA_CACHE_DIR``).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+_jit = numba.njit(cache=True, nogil=True)
+
+
+@_jit
+def _sq_dist(a: np.ndarray, b: np.ndarray) -> float:
+    d0, d1, d2 = a[0] - b[0], a[1] - b[1], a[2] - b[2]
+    return d0 * d0 + d1 * d1 + d2 * d2
+
+
+@_jit
+def _insert(d2: float, j: int, best_d: np.ndarray, best_i: np.ndarray, found: int, k: int) -> int:
+    """Insert cloud point j at squared distance d2 into the sorted (nearest first) top-k lists; -> new count."""
+    if found == k and d2 >= best_d[k - 1]:
+        return found
+    pos = found if found < k else k - 1
+    while pos > 0 and best_d[pos - 1] > d2:
+        if pos < k:
+            best_d[pos] = best_d[pos - 1]
+            best_i[pos] = best_i[pos - 1]
+        pos -= 1
+    best_d[pos] = d2
+    best_i[pos] = j
+    return found + 1 if found < k else k
+
+
+@_jit
+def _refresh(
+    x: np.ndarray, pts: np.ndarray, k: int, row: int, centre: np.ndarray, radius: np.ndarray,
+    cand: np.ndarray, count: np.ndarray, best_d: np.ndarray, best_i: np.ndarray,
+) -> np.ndarray:
+    """The k nearest of all cloud points pts (M, 3) to x (3,), then the candidates of keypoint ``row``: every
+    point within twice the k-th distance of x (centre x). Returns cand, reallocated when a row outgrows it."""
+    found = 0
+    for j in range(len(pts)):
+        found = _insert(_sq_dist(x, pts[j]), j, best_d, best_i, found, k)
+    r = 2.0 * np.sqrt(best_d[k - 1]) + 1e-9
+    r2 = r * r
+    n = 0
+    for j in range(len(pts)):
+        if _sq_dist(x, pts[j]) <= r2:
+            n += 1
+    if n > cand.shape[1]:
+        grown = np.empty((cand.shape[0], 2 * n), np.int64)
+        grown[:, : cand.shape[1]] = cand
+        cand = grown
+    n = 0
+    for j in range(len(pts)):
+        if _sq_dist(x, pts[j]) <= r2:
+            cand[row, n] = j
+            n += 1
+    count[row] = n
+    centre[row] = x
+    radius[row] = r
+    return cand
+
+
+@_jit
+def _extent_projector(nb: np.ndarray, out: np.ndarray) -> None:
+    """Projector (3, 3) into out onto the span of the principal directions of the points nb (k, 3) whose
+    variance is at least 10 % of the largest (``tracking.solver.extent_projectors`` for one neighbourhood)."""
+    k = nb.shape[0]
+    mean = np.zeros(3)
+    for a in range(k):
+        for i in range(3):
+            mean[i] += nb[a, i]
+    c = np.empty((k, 3))
+    for a in range(k):
+        for i in range(3):
+            c[a, i] = nb[a, i] - mean[i] / k
+    cov = np.zeros((3, 3))
+    for i in range(3):
+        for j in range(3):
+            s = 0.0
+            for a in range(k):
+                s += c[a, i] * c[a, j]
+            cov[i, j] = s
+    lam, vec = np.linalg.eigh(cov)
+    for i in range(3):
+        for j in range(3):
+            s = 0.0
+            for m in range(3):
+                if lam[m] >= 0.1 * lam[2]:
+                    s += vec[i, m] * vec[j, m]
+            out[i, j] = s
+
+
+@_jit
+def solve_iterations(
+    X: np.ndarray,
+    e_first: np.ndarray,
+    e_second: np.ndarray,
+    e_wi: np.ndarray,
+    e_wj: np.ndarray,
+    e_rest: np.ndarray,
+    pts: np.ndarray,
+    k: int,
+    max_slide_m: float,
+    soft_idx: np.ndarray,
+    soft_pos: np.ndarray,
+    soft_w: np.ndarray,
+    hard_idx: np.ndarray,
+    hard_pos: np.ndarray,
+    iterations: int,
+) -> None:
+    """Algorithm 1's iterations on keypoints X (N, 3) m, in place.
+
+    Edges (E,) in colour-class order (``tracking.solver.edge_plan``): e_first, e_second int64 endpoints, e_wi,
+    e_wj their inverse masses (0: fixed), e_rest m; no edges: E = 0. pts: (M, 3) m cloud, M = 0: no cloud
+    projection. Each iteration: one Gauss-Seidel sweep of the edges; every keypoint to the cloud (k <= 1: its
+    nearest point; else nearest point plus its offset restricted to the local extent of its k nearest points,
+    clamped to max_slide_m, ``tracking.solver.project_to_cloud``); soft anchors soft_idx (S,) moved the fraction
+    soft_w (S,) of the way to soft_pos (S, 3); hard anchors hard_idx (H,) put on hard_pos (H, 3).
+    The k nearest cloud points are searched among a keypoint's candidates (the points within a radius of where
+    they were last gathered from the whole cloud), exact while the k-th distance is within that radius less the
+    keypoint's move since; otherwise gathered again.
+    """
+    N = X.shape[0]
+    M = pts.shape[0]
+    kk = min(max(k, 1), M)
+    centre = np.zeros((N, 3))
+    radius = np.full(N, -1.0)
+    count = np.zeros(N, np.int64)
+    cand = np.empty((N, 64), np.int64)
+    members = np.full((N, kk), -1, np.int64)
+    proj = np.zeros((N, 3, 3))
+    best_d = np.empty(kk)
+    best_i = np.empty(kk, np.int64)
+    srt = np.empty(kk, np.int64)
+    nb = np.empty((kk, 3))
+    for _ in range(iterations):
+        for e in range(len(e_first)):
+            i, j = e_first[e], e_second[e]
+            wsum = e_wi[e] + e_wj[e]
+            d0, d1, d2 = X[j, 0] - X[i, 0], X[j, 1] - X[i, 1], X[j, 2] - X[i, 2]
+            L = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            if wsum > 0 and L > 1e-12:
+                f = (L - e_rest[e]) / (L * wsum)
+                s0, s1, s2 = f * d0, f * d1, f * d2
+                X[i, 0] += e_wi[e] * s0
+                X[i, 1] += e_wi[e] * s1
+                X[i, 2] += e_wi[e] * s2
+                X[j, 0] += -e_wj[e] * s0
+                X[j, 1] += -e_wj[e] * s1
+                X[j, 2] += -e_wj[e] * s2
+        if M > 0:
+            for n in range(N):
+                x = X[n]
+                moved = np.sqrt(_sq_dist(x, centre[n]))
+                found = 0
+                if radius[n] >= 0:
+                    for c in range(count[n]):
+                        j = cand[n, c]
+                        found = _insert(_sq_dist(x, pts[j]), j, best_d, best_i, found, kk)
+                if radius[n] < 0 or found < kk or np.sqrt(best_d[kk - 1]) > radius[n] - moved:
+                    cand = _refresh(x, pts, kk, n, centre, radius, cand, count, best_d, best_i)
+                p = pts[best_i[0]]
+                if k <= 1:
+                    X[n, 0], X[n, 1], X[n, 2] = p[0], p[1], p[2]
+                    continue
+                srt[:] = np.sort(best_i)
+                same = True
+                for a in range(kk):
+                    if srt[a] != members[n, a]:
+                        same = False
+                if not same:
+                    for a in range(kk):
+                        nb[a] = pts[best_i[a]]
+                    _extent_projector(nb, proj[n])
+                    members[n] = srt
+                r0, r1, r2 = x[0] - p[0], x[1] - p[1], x[2] - p[2]
+                o = np.empty(3)
+                for i in range(3):
+                    o[i] = (r0 * proj[n, i, 0] + r2 * proj[n, i, 2]) + r1 * proj[n, i, 1]
+                norm = np.sqrt(o[0] * o[0] + o[1] * o[1] + o[2] * o[2])
+                g = max_slide_m / max(norm, max(max_slide_m, 1e-12))
+                for i in range(3):
+                    X[n, i] = p[i] + o[i] * g
+        for a in range(len(soft_idx)):
+            n = soft_idx[a]
+            for i in range(3):
+                X[n, i] = X[n, i] + soft_w[a] * (soft_pos[a, i] - X[n, i])
+        for a in range(len(hard_idx)):
+            for i in range(3):
+                X[hard_idx[a], i] = hard_pos[a, i]
+
+
+def warm_up() -> None:
+    """Compile the kernels, or load them from numba's cache (~0.3 s), on a two-keypoint problem: a process
+    calls this at start-up so that its first tracked frame does not wait for it (the first compile on a
+    machine takes ~15 s)."""
+    X = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]])
+    one = np.ones(1)
+    solve_iterations(
+        X, np.zeros(1, np.int64), np.ones(1, np.int64), one, one, 0.01 * one, np.ascontiguousarray(X + 0.001), 2,
+        0.003, np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(1, np.int64), X[:1].copy(), 1,
+    )
