@@ -197,6 +197,61 @@ def solve_iterations(
                 X[hard_idx[a], i] = hard_pos[a, i]
 
 
+
+@_jit
+def zbuffer_triangles(
+    u: np.ndarray, v: np.ndarray, vc: np.ndarray, tri: np.ndarray, r0: int, nr: int, c0: int, nc: int, stride: int,
+    fx: float, fy: float, cx: float, cy: float,
+) -> np.ndarray:
+    """Nearest camera z-depth (nr * nc,) float64 m (+inf: none) of triangles tri (F, 3) int64 over a pixel grid.
+
+    u, v: (V,) float64 vertex pixel coordinates; vc: (V, 3) float64 camera-frame vertices (z > 0), m. Grid pixel
+    (i, j) is image pixel (r0 + i stride, c0 + j stride). Each triangle is scanned row by row over the grid
+    pixels whose centre its projection covers (its corners sorted top to bottom; a row's span between the long
+    edge and the short edge beside it), at the z where that pixel's ray meets the triangle's plane, clipped to
+    the triangle's depth range (an edge-on sliver's plane is ill-conditioned).
+    """
+    grid = np.full(nr * nc, np.inf)
+    for f in range(tri.shape[0]):
+        a, b, c = tri[f, 0], tri[f, 1], tri[f, 2]
+        if v[b] < v[a]:  # a stable sort of the three corners by v: top (a), middle (b), bottom (c)
+            a, b = b, a
+        if v[c] < v[b]:
+            b, c = c, b
+            if v[b] < v[a]:
+                a, b = b, a
+        vt, vm, vb = v[a], v[b], v[c]
+        ilo = max(int(np.ceil((vt - r0) / stride)), 0)
+        ihi = min(int(np.floor((vb - r0) / stride)), nr - 1)
+        if ihi < ilo or not vb > vt:
+            continue
+        ut, um, ub = u[a], u[b], u[c]
+        s_tb = (ub - ut) / (vb - vt)  # du / dv along the long edge and the two short ones (0 when flat)
+        s_tm = (um - ut) / (vm - vt) if vm > vt else 0.0
+        s_mb = (ub - um) / (vb - vm) if vb > vm else 0.0
+        p0, p1, p2 = vc[a], vc[b], vc[c]
+        e0, e1, e2 = p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]
+        g0, g1, g2 = p2[0] - p0[0], p2[1] - p0[1], p2[2] - p0[2]
+        n0, n1, n2 = e1 * g2 - e2 * g1, e2 * g0 - e0 * g2, e0 * g1 - e1 * g0
+        off = n0 * p0[0] + n1 * p0[1] + n2 * p0[2]
+        zmin = min(min(p0[2], p1[2]), p2[2])
+        zmax = max(max(p0[2], p1[2]), p2[2])
+        for i in range(ilo, ihi + 1):
+            y = float(r0 + i * stride)
+            x_long = ut + (y - vt) * s_tb
+            x_short = ut + (y - vt) * s_tm if y < vm else um + (y - vm) * s_mb
+            jlo = max(int(np.ceil((min(x_long, x_short) - c0) / stride)), 0)
+            jhi = min(int(np.floor((max(x_long, x_short) - c0) / stride)), nc - 1)
+            ry = n1 * ((y - cy) / fy)
+            for j in range(jlo, jhi + 1):
+                den = n0 * ((c0 + j * stride - cx) / fx) + ry + n2
+                z = min(max(off / (den if den != 0 else 1e-300), zmin), zmax)
+                k = i * nc + j
+                if z < grid[k]:
+                    grid[k] = z
+    return grid
+
+
 def warm_up() -> None:
     """Compile the kernels, or load them from numba's cache (~0.3 s), on a two-keypoint problem: a process
     calls this at start-up so that its first tracked frame does not wait for it (the first compile on a

@@ -23,6 +23,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from tracking.geometry import csr_graph, depth_to_points, pixel_mask
+from tracking.kernels import zbuffer_triangles
 from tracking.params import TrackingParams
 
 
@@ -165,9 +166,6 @@ def render_arm_depth(
     return out
 
 
-_RASTER_MAX_FRAGMENTS = 1_000_000  # (triangle, pixel) pairs rasterise_depth holds at once (~10 arrays of them)
-
-
 def rasterise_depth(
     vertices: np.ndarray,
     triangles: np.ndarray,
@@ -185,8 +183,8 @@ def rasterise_depth(
     meets its plane (kept within the triangle's depth range: an edge-on sliver's plane is ill-conditioned).
     cullable: (F,) bool triangles skipped when they face away from the camera (``tdcommon.meshes.closed_outward``:
     on a closed outward mesh such a face is behind one that faces the camera; about half the work).
-    A mesh with a vertex behind the camera, or covering more than ``_RASTER_MAX_FRAGMENTS`` grid pixels
-    counted per triangle (memory), is raycast (``render_arm_depth``).
+    The scan runs compiled (``tracking.kernels.zbuffer_triangles``). A mesh with a vertex behind the camera is
+    raycast (``render_arm_depth``).
     Returns (H, W) float32 camera z-depth in metres, +inf where no mesh is hit.
     """
     H, W = shape
@@ -210,49 +208,8 @@ def rasterise_depth(
         q0 = vc[tri[:, 0]]
         away = np.einsum("ij,ij->i", np.cross(vc[tri[:, 1]] - q0, vc[tri[:, 2]] - q0), q0) >= 0
         tri = tri[~(away & cullable)]
-    # each triangle's corners top (t), middle (m), bottom (b) by image row, and the grid rows it spans
-    # (grid row i is image row r0 + i stride)
-    order = np.argsort(v[tri], axis=1, kind="stable")
-    tri = np.take_along_axis(tri, order, axis=1)
-    vt, vb = v[tri[:, 0]], v[tri[:, 2]]
-    ilo = np.maximum(np.ceil((vt - r0) / stride), 0).astype(np.int64)
-    ihi = np.minimum(np.floor((vb - r0) / stride), nr - 1).astype(np.int64)
-    keep = np.nonzero((ihi >= ilo) & (vb > vt))[0]
-    if len(keep) == 0:
-        return out
-    tri, ilo, nrow = tri[keep], ilo[keep], ihi[keep] - ilo[keep] + 1
-    ut, um, ub = u[tri[:, 0]], u[tri[:, 1]], u[tri[:, 2]]
-    vt, vm, vb = v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]]
-    s_tb = (ub - ut) / (vb - vt)  # du / dv along the long edge and the two short ones (0 when flat)
-    s_tm = np.where(vm > vt, (um - ut) / np.where(vm > vt, vm - vt, 1.0), 0.0)
-    s_mb = np.where(vb > vm, (ub - um) / np.where(vb > vm, vb - vm, 1.0), 0.0)
-    f = np.repeat(np.arange(len(tri)), nrow)  # one entry per (triangle, grid row)
-    i = ilo[f] + np.arange(len(f)) - np.repeat(np.cumsum(nrow) - nrow, nrow)
-    y = (r0 + i * stride).astype(np.float64)
-    # the row's span between the long edge and the short edge beside it
-    x_long = ut[f] + (y - vt[f]) * s_tb[f]
-    upper = y < vm[f]
-    x_short = np.where(upper, ut[f] + (y - vt[f]) * s_tm[f], um[f] + (y - vm[f]) * s_mb[f])
-    jlo = np.maximum(np.ceil((np.minimum(x_long, x_short) - c0) / stride), 0).astype(np.int64)
-    jhi = np.minimum(np.floor((np.maximum(x_long, x_short) - c0) / stride), nc - 1).astype(np.int64)
-    ncol = np.maximum(jhi - jlo + 1, 0)
-    if int(ncol.sum()) > _RASTER_MAX_FRAGMENTS:  # meshes covering the image many times over: raycast them
-        return render_arm_depth(vertices, triangles, K, T_world_cam, shape, stride)
-    px = np.repeat(np.arange(len(f)), ncol)  # one entry per (triangle, grid pixel)
-    if len(px) == 0:
-        return out
-    j = jlo[px] + np.arange(len(px)) - np.repeat(np.cumsum(ncol) - ncol, ncol)
-    fp = f[px]
-    # the pixel's ray ((x - cx) / fx, (y - cy) / fy, 1) meets the triangle's plane n . p = n . p0 at z
-    p0, p1, p2 = vc[tri[:, 0]], vc[tri[:, 1]], vc[tri[:, 2]]
-    nrm = np.cross(p1 - p0, p2 - p0)
-    off = nrm[:, 0] * p0[:, 0] + nrm[:, 1] * p0[:, 1] + nrm[:, 2] * p0[:, 2]
-    zmin = np.minimum(np.minimum(p0[:, 2], p1[:, 2]), p2[:, 2])
-    zmax = np.maximum(np.maximum(p0[:, 2], p1[:, 2]), p2[:, 2])
-    den = nrm[fp, 0] * ((c0 + j * stride - cx) / fx) + nrm[fp, 1] * ((y[px] - cy) / fy) + nrm[fp, 2]
-    z = np.clip(off[fp] / np.where(den != 0, den, 1e-300), zmin[fp], zmax[fp])
-    grid = np.full(nr * nc, np.inf)
-    np.minimum.at(grid, i[px] * nc + j, z)
+    tri = np.ascontiguousarray(tri)
+    grid = zbuffer_triangles(u, v, vc, tri, r0, nr, c0, nc, stride, float(fx), float(fy), float(cx), float(cy))
     block = np.repeat(np.repeat(grid.reshape(nr, nc).astype(np.float32), stride, axis=0), stride, axis=1)
     out[r0:r1, c0:c1] = block[: r1 - r0, : c1 - c0]
     return out
