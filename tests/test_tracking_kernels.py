@@ -10,6 +10,7 @@ from scipy.spatial import cKDTree
 
 from tracking.init import grid_topology
 from tracking.params import TrackingParams
+from tracking.segmentation import dbscan_labels
 from tracking.solver import edge_colouring, solve_keypoints
 
 P = TrackingParams()
@@ -102,3 +103,42 @@ def test_compiled_iterations_without_cloud_or_edges():
     assert cKDTree(cloud).query(no_edges[1:])[0].max() < P.surface_slide_m + 1e-9
     one_point = solve_keypoints(X0, edges, rest, [], np.zeros((0, 3)), cloud[:1], 3, P)
     assert np.isfinite(one_point).all()
+
+
+def _reference_dbscan(points: np.ndarray, eps: float, min_points: int) -> np.ndarray:
+    """DBSCAN from a KD-tree pair query and scipy's connected components; a border point takes its nearest core
+    point's cluster; clusters numbered by their first core point."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(points)
+    pairs = cKDTree(points).query_pairs(eps, output_type="ndarray")
+    core = np.bincount(pairs.ravel(), minlength=n) + 1 >= min_points
+    cc = pairs[core[pairs[:, 0]] & core[pairs[:, 1]]]
+    _, comp = connected_components(coo_matrix((np.ones(len(cc)), (cc[:, 0], cc[:, 1])), shape=(n, n)), directed=False)
+    lab = np.full(n, -1)
+    first = {}
+    for i in np.flatnonzero(core):
+        lab[i] = first.setdefault(comp[i], len(first))
+    tree = cKDTree(points[core])
+    for i in np.flatnonzero(~core):
+        d, j = tree.query(points[i])
+        if d <= eps:
+            lab[i] = lab[np.flatnonzero(core)[j]]
+    return lab
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_compiled_dbscan_equals_reference(seed):
+    """Blobs, lines and noise at several scales (negative coordinates, one flat axis, points on cell borders)."""
+    rng = np.random.default_rng(seed)
+    parts = [rng.normal(c, 0.01, (300, 3)) for c in rng.uniform(-0.3, 0.3, (4, 3))]
+    parts.append(np.stack([np.linspace(-0.2, 0.2, 60), np.zeros(60), np.zeros(60)], axis=1))  # 6.8 mm apart
+    parts.append(rng.uniform(-0.5, 0.5, (400, 3)))
+    parts.append(0.015 * rng.integers(-20, 20, (200, 3)).astype(float))  # on the eps grid's cell borders
+    pts = np.concatenate(parts)
+    for eps, mp in ((0.015, 3), (0.008, 5), (0.03, 1)):
+        got = dbscan_labels(pts, eps, mp)
+        np.testing.assert_array_equal(got, _reference_dbscan(pts, eps, mp))
+    assert dbscan_labels(np.zeros((0, 3)), 0.015, 3).shape == (0,)
+    assert dbscan_labels(np.zeros((1, 3)), 0.015, 1).tolist() == [0]

@@ -252,6 +252,153 @@ def zbuffer_triangles(
     return grid
 
 
+
+@_jit
+def _cells(points: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, int]:
+    """Points (N, 3) m binned into cubic cells of edge size m: (order (N,) the points sorted by cell, cell_key (C,)
+    sorted keys of the occupied cells, start (C + 1,) their ranges in order, key (N,) each point's, Dy, Dz).
+    A key is (x Dy + y) Dz + z of the cell's integer coordinates, padded by one cell on every side, so the
+    key of a neighbouring cell is the key plus a constant offset."""
+    n = points.shape[0]
+    lo = np.empty(3)
+    for i in range(3):
+        lo[i] = points[:, i].min()
+    c = np.empty((n, 3), np.int64)
+    for a in range(n):
+        for i in range(3):
+            c[a, i] = int(np.floor((points[a, i] - lo[i]) / size)) + 1
+    Dy = c[:, 1].max() + 2
+    Dz = c[:, 2].max() + 2
+    key = (c[:, 0] * Dy + c[:, 1]) * Dz + c[:, 2]
+    order = np.argsort(key)
+    sk = key[order]
+    m = 1
+    for a in range(1, n):
+        if sk[a] != sk[a - 1]:
+            m += 1
+    cell_key = np.empty(m, np.int64)
+    start = np.empty(m + 1, np.int64)
+    m = 0
+    for a in range(n):
+        if a == 0 or sk[a] != sk[a - 1]:
+            cell_key[m] = sk[a]
+            start[m] = a
+            m += 1
+    start[m] = n
+    return order, cell_key, start, key, Dy, Dz
+
+
+@_jit
+def _find(parent: np.ndarray, a: int) -> int:
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
+
+
+@_jit
+def _scan_pairs(
+    points: np.ndarray, eps2: float, order: np.ndarray, cell_key: np.ndarray, start: np.ndarray, Dy: int, Dz: int,
+    pi: np.ndarray, pj: np.ndarray, pd: np.ndarray,
+) -> int:
+    """The pairs of ``_pairs_within`` (points (N, 3) here sorted by cell: point p is the input's order[p]), written
+    into pi, pj, pd when they are long enough; -> their number."""
+    C = cell_key.shape[0]
+    fill = pi.shape[0] > 0
+    n = 0
+    for col in range(5):  # (dx, dy) = (0, 0), (0, 1), (1, -1), (1, 0), (1, 1); dz from -1 (0 in the cell's own)
+        dx = 0 if col < 2 else 1
+        dy = col if col < 2 else col - 3
+        base = (dx * Dy + dy) * Dz
+        b = 0
+        for a in range(C):
+            lo = cell_key[a] + base - (1 if col > 0 else 0)
+            while b < C and cell_key[b] < lo:
+                b += 1
+            for c in range(b, C):
+                if cell_key[c] - cell_key[a] - base > 1:
+                    break
+                for p in range(start[a], start[a + 1]):
+                    x0, x1, x2 = points[p, 0], points[p, 1], points[p, 2]
+                    for q in range(p + 1 if c == a else start[c], start[c + 1]):
+                        d0 = x0 - points[q, 0]
+                        d1 = x1 - points[q, 1]
+                        d2 = x2 - points[q, 2]
+                        d = d0 * d0 + d1 * d1 + d2 * d2
+                        if d <= eps2:
+                            if fill:
+                                pi[n] = order[p]
+                                pj[n] = order[q]
+                                pd[n] = d
+                            n += 1
+    return n
+
+
+@_jit
+def _pairs_within(
+    points: np.ndarray, eps2: float, order: np.ndarray, cell_key: np.ndarray, start: np.ndarray, Dy: int, Dz: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every pair of points (N, 3) m within sqrt(eps2) of each other once, from ``_cells`` of edge >= that:
+    (i (P,) int64, j (P,) int64, squared distance (P,) float64). The cells beside a cell are found by walking the
+    sorted keys once per forward (dx, dy) column (5 walks: the cell itself and 13 of its 26 neighbours); counted
+    first, then written."""
+    none = np.empty(0, np.int64)
+    sorted_points = points[order]
+    n = _scan_pairs(sorted_points, eps2, order, cell_key, start, Dy, Dz, none, none, np.empty(0))
+    pi, pj, pd = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n)
+    if n:
+        _scan_pairs(sorted_points, eps2, order, cell_key, start, Dy, Dz, pi, pj, pd)
+    return pi, pj, pd
+
+
+@_jit
+def dbscan(points: np.ndarray, eps_m: float, min_points: int) -> np.ndarray:
+    """DBSCAN labels (N,) int64 of points (N, 3) m: 0..k-1 by each cluster's first core point, -1 noise.
+
+    A point is core when at least min_points points (itself included) lie within eps_m; clusters are the
+    connected components of core points linked within eps_m; a non-core point within eps_m of a core point
+    takes the cluster of the nearest one (the lower index on a tie). Neighbours are searched in cells of edge eps_m.
+    """
+    n = points.shape[0]
+    lab = np.full(n, -1, np.int64)
+    if n == 0:
+        return lab
+    order, cell_key, start, _, Dy, Dz = _cells(points, eps_m * (1.0 + 1e-9))  # a pair eps_m apart: adjacent cells
+    pi, pj, pd = _pairs_within(points, eps_m * eps_m, order, cell_key, start, Dy, Dz)
+    count = np.ones(n, np.int64)  # the point itself
+    for p in range(len(pi)):
+        count[pi[p]] += 1
+        count[pj[p]] += 1
+    core = count >= min_points
+    parent = np.arange(n)
+    near_core = np.full(n, -1, np.int64)
+    near_d2 = np.full(n, np.inf)
+    for p in range(len(pi)):
+        i, j, d = pi[p], pj[p], pd[p]
+        if core[i] and core[j]:
+            ri, rj = _find(parent, i), _find(parent, j)
+            if ri != rj:
+                parent[max(ri, rj)] = min(ri, rj)
+        elif core[i] != core[j]:
+            c, o = (i, j) if core[i] else (j, i)
+            if d < near_d2[o] or (d == near_d2[o] and c < near_core[o]):
+                near_core[o] = c
+                near_d2[o] = d
+    root_label = np.full(n, -1, np.int64)
+    k = 0
+    for i in range(n):
+        if core[i]:
+            r = _find(parent, i)
+            if root_label[r] < 0:
+                root_label[r] = k
+                k += 1
+            lab[i] = root_label[r]
+    for i in range(n):
+        if not core[i] and near_core[i] >= 0:
+            lab[i] = lab[near_core[i]]
+    return lab
+
+
 def warm_up() -> None:
     """Compile the kernels, or load them from numba's cache (~0.3 s), on a two-keypoint problem: a process
     calls this at start-up so that its first tracked frame does not wait for it (the first compile on a
