@@ -15,8 +15,9 @@ _jit = numba.njit(cache=True, nogil=True)
 
 
 @_jit
-def _sq_dist(a: np.ndarray, b: np.ndarray) -> float:
-    d0, d1, d2 = a[0] - b[0], a[1] - b[1], a[2] - b[2]
+def _sq_dist(x0: float, x1: float, x2: float, pts: np.ndarray, j: int) -> float:
+    """Squared distance from (x0, x1, x2) to pts[j] (pts: (M, 3))."""
+    d0, d1, d2 = x0 - pts[j, 0], x1 - pts[j, 1], x2 - pts[j, 2]
     return d0 * d0 + d1 * d1 + d2 * d2
 
 
@@ -37,28 +38,90 @@ def _insert(d2: float, j: int, best_d: np.ndarray, best_i: np.ndarray, found: in
 
 
 @_jit
-def _refresh(
-    x: np.ndarray, pts: np.ndarray, k: int, row: int, centre: np.ndarray, radius: np.ndarray,
-    cand: np.ndarray, count: np.ndarray, best_d: np.ndarray, best_i: np.ndarray,
-) -> np.ndarray:
-    """The k nearest of all cloud points pts (M, 3) to x (3,), then the candidates of keypoint ``row``: every
-    point within twice the k-th distance of x (centre x). Returns cand, reallocated when a row outgrows it."""
+def _x_buckets(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Cloud points pts (M, 3) m counting-sorted into M // 4 + 1 equal slabs of x: (the points in slab order
+    (M, 3), the slabs' starts (B + 1,) into them, the first slab's lower x, the slab width), m. Linear time:
+    a comparison sort of a few thousand points costs more than the solve."""
+    M = pts.shape[0]
+    B = M // 4 + 1
+    lo, hi = pts[:, 0].min(), pts[:, 0].max()
+    w = max((hi - lo) / B, 1e-9) * (1.0 + 1e-12)  # the largest x falls into the last slab
+    slab = np.empty(M, np.int64)
+    start = np.zeros(B + 1, np.int64)
+    for j in range(M):
+        slab[j] = min(int((pts[j, 0] - lo) / w), B - 1)
+        start[slab[j] + 1] += 1
+    for b in range(B):
+        start[b + 1] += start[b]
+    fill = start[:-1].copy()
+    out = np.empty((M, 3))
+    for j in range(M):
+        out[fill[slab[j]]] = pts[j]
+        fill[slab[j]] += 1
+    return out, start, lo, w
+
+
+@_jit
+def _knn_slabs(
+    x0: float, x1: float, x2: float, pts: np.ndarray, start: np.ndarray, lo: float, w: float, k: int,
+    best_d: np.ndarray, best_i: np.ndarray,
+) -> int:
+    """The k nearest points to (x0, x1, x2) of pts, start, lo, w (``_x_buckets``) into best_d (squared
+    distances) and best_i, nearest first: the slabs are visited outwards from x0's, each side until its x gap
+    alone exceeds the k-th distance. Returns how many were found (k unless pts has fewer)."""
+    B = start.shape[0] - 1
+    home = min(max(int(np.floor((x0 - lo) / w)), 0), B - 1)
     found = 0
-    for j in range(len(pts)):
-        found = _insert(_sq_dist(x, pts[j]), j, best_d, best_i, found, k)
+    for j in range(start[home], start[home + 1]):
+        found = _insert(_sq_dist(x0, x1, x2, pts, j), j, best_d, best_i, found, k)
+    right, left = home + 1, home - 1  # each side's next slab, -1 / B once that side is done
+    while right < B or left >= 0:
+        if right < B:
+            g = lo + right * w - x0  # x gap to the slab
+            if found == k and g > 0 and g * g > best_d[k - 1]:
+                right = B
+            else:
+                for j in range(start[right], start[right + 1]):
+                    found = _insert(_sq_dist(x0, x1, x2, pts, j), j, best_d, best_i, found, k)
+                right += 1
+        if left >= 0:
+            g = x0 - (lo + (left + 1) * w)
+            if found == k and g > 0 and g * g > best_d[k - 1]:
+                left = -1
+            else:
+                for j in range(start[left], start[left + 1]):
+                    found = _insert(_sq_dist(x0, x1, x2, pts, j), j, best_d, best_i, found, k)
+                left -= 1
+    return found
+
+
+@_jit
+def _refresh(
+    x: np.ndarray, pts: np.ndarray, start: np.ndarray, lo: float, w: float, k: int, row: int, centre: np.ndarray,
+    radius: np.ndarray, cand: np.ndarray, count: np.ndarray, best_d: np.ndarray, best_i: np.ndarray,
+) -> np.ndarray:
+    """The k nearest cloud points to x (3,), then the candidates of keypoint ``row``: every point within twice
+    the k-th distance of x (centre x). pts, start, lo, w: ``_x_buckets``; both searches visit the slabs
+    outwards from x's and stop where the x gap alone exceeds the distance sought. Returns cand, reallocated
+    when a row outgrows it."""
+    B = start.shape[0] - 1
+    x0, x1, x2 = x[0], x[1], x[2]
+    _knn_slabs(x0, x1, x2, pts, start, lo, w, k, best_d, best_i)
     r = 2.0 * np.sqrt(best_d[k - 1]) + 1e-9
     r2 = r * r
+    b0 = min(max(int(np.floor((x0 - r - lo) / w)), 0), B - 1)
+    b1 = min(max(int(np.floor((x0 + r - lo) / w)), 0), B - 1)
     n = 0
-    for j in range(len(pts)):
-        if _sq_dist(x, pts[j]) <= r2:
+    for j in range(start[b0], start[b1 + 1]):
+        if _sq_dist(x0, x1, x2, pts, j) <= r2:
             n += 1
     if n > cand.shape[1]:
         grown = np.empty((cand.shape[0], 2 * n), np.int64)
         grown[:, : cand.shape[1]] = cand
         cand = grown
     n = 0
-    for j in range(len(pts)):
-        if _sq_dist(x, pts[j]) <= r2:
+    for j in range(start[b0], start[b1 + 1]):
+        if _sq_dist(x0, x1, x2, pts, j) <= r2:
             cand[row, n] = j
             n += 1
     count[row] = n
@@ -124,12 +187,16 @@ def solve_iterations(
     clamped to max_slide_m, ``tracking.solver.project_to_cloud``); soft anchors soft_idx (S,) moved the fraction
     soft_w (S,) of the way to soft_pos (S, 3); hard anchors hard_idx (H,) put on hard_pos (H, 3).
     The k nearest cloud points are searched among a keypoint's candidates (the points within a radius of where
-    they were last gathered from the whole cloud), exact while the k-th distance is within that radius less the
-    keypoint's move since; otherwise gathered again.
+    they were last gathered from the whole cloud, ``_refresh``), exact while the k-th distance is within that
+    radius less the keypoint's move since; otherwise gathered again.
     """
     N = X.shape[0]
     M = pts.shape[0]
     kk = min(max(k, 1), M)
+    if M > 0:
+        pts, slabs, lo, w = _x_buckets(pts)  # a keypoint's neighbours lie in a few slabs of x
+    else:
+        slabs, lo, w = np.zeros(1, np.int64), 0.0, 1.0
     centre = np.zeros((N, 3))
     radius = np.full(N, -1.0)
     count = np.zeros(N, np.int64)
@@ -158,14 +225,15 @@ def solve_iterations(
         if M > 0:
             for n in range(N):
                 x = X[n]
-                moved = np.sqrt(_sq_dist(x, centre[n]))
+                x0, x1, x2 = x[0], x[1], x[2]
+                moved = np.sqrt(_sq_dist(x0, x1, x2, centre, n))
                 found = 0
                 if radius[n] >= 0:
                     for c in range(count[n]):
                         j = cand[n, c]
-                        found = _insert(_sq_dist(x, pts[j]), j, best_d, best_i, found, kk)
+                        found = _insert(_sq_dist(x0, x1, x2, pts, j), j, best_d, best_i, found, kk)
                 if radius[n] < 0 or found < kk or np.sqrt(best_d[kk - 1]) > radius[n] - moved:
-                    cand = _refresh(x, pts, kk, n, centre, radius, cand, count, best_d, best_i)
+                    cand = _refresh(x, pts, slabs, lo, w, kk, n, centre, radius, cand, count, best_d, best_i)
                 p = pts[best_i[0]]
                 if k <= 1:
                     X[n, 0], X[n, 1], X[n, 2] = p[0], p[1], p[2]
@@ -397,6 +465,21 @@ def dbscan(points: np.ndarray, eps_m: float, min_points: int) -> np.ndarray:
         if not core[i] and near_core[i] >= 0:
             lab[i] = lab[near_core[i]]
     return lab
+
+
+
+@_jit
+def nearest_distances(X: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Distance (N,) m from each point X (N, 3) m to its nearest point of pts (M, 3) m, M > 0 (the slab search
+    of the solver: no KD-tree to build for a few dozen queries)."""
+    slab_pts, start, lo, w = _x_buckets(pts)
+    best_d = np.empty(1)
+    best_i = np.empty(1, np.int64)
+    out = np.empty(X.shape[0])
+    for n in range(X.shape[0]):
+        _knn_slabs(X[n, 0], X[n, 1], X[n, 2], slab_pts, start, lo, w, 1, best_d, best_i)
+        out[n] = np.sqrt(best_d[0])
+    return out
 
 
 def warm_up() -> None:

@@ -355,17 +355,17 @@ class Tracker:
         det, kinds = detect_anchors(self.topology.kind, cloud, self.K, self.T, p, held)
         t1 = time.perf_counter()
         pred = self.keypoints if self._velocity is None else self.keypoints + self._velocity
-        tree = cKDTree(cloud)  # shared by the solver's cloud projection and the CD score
-        X, matched = track_frame(self.keypoints, self.topology, tree, det, kinds, p, tcp, self.grasp_idx, pred)
+        cloud = np.ascontiguousarray(cloud, np.float64)
+        X, matched = track_frame(self.keypoints, self.topology, cloud, det, kinds, p, tcp, self.grasp_idx, pred)
         tangled, repaired = 0, False
         if self.topology.grid_shape is not None:
-            X, matched, tangled, repaired = self._untangle(X, matched, cloud, tree, det, kinds, tcp, held)
-        res = self._result(X, tree, matched, na, tangled=tangled, repaired=repaired)
+            X, matched, tangled, repaired = self._untangle(X, matched, cloud, det, kinds, tcp, held)
+        res = self._result(X, cloud, matched, na, tangled=tangled, repaired=repaired)
         self.last_timings_ms = {"anchors": 1e3 * (t1 - t0), "solve": 1e3 * (time.perf_counter() - t1)}
         return res
 
     def _untangle(
-        self, X: np.ndarray, matched: int, cloud: np.ndarray, tree: cKDTree, det: np.ndarray, kinds: np.ndarray,
+        self, X: np.ndarray, matched: int, cloud: np.ndarray, det: np.ndarray, kinds: np.ndarray,
         tcp: np.ndarray | None, held: np.ndarray | None,
     ) -> tuple[np.ndarray, int, int, bool]:
         """A grid solution X (N, 3) m checked for tangles; a tangled one is solved again from a grid re-lifted
@@ -379,7 +379,7 @@ class Tracker:
         X0 = relift_grid(X, self.topology, cloud, self.K, self.T, self.params, held)
         if X0 is None:
             return X, matched, bad, False
-        X2, m2 = track_frame(X0, self.topology, tree, det, kinds, self.params, tcp, self.grasp_idx, X0)
+        X2, m2 = track_frame(X0, self.topology, cloud, det, kinds, self.params, tcp, self.grasp_idx, X0)
         bad2 = int(tangled_cells(X2, rows, cols).sum())
         if bad2 < bad:
             return X2, m2, bad2, True
