@@ -26,6 +26,7 @@ from tracking.segmentation import (
     Segmentation,
     background_from_depths,
     behind_near_object,
+    change_threshold,
     far_where_no_return,
     grow_attached_tubes,
     refine_object_cloud,
@@ -429,9 +430,10 @@ class LivePipeline:
         topo, X = self.tracker.topology, self.tracker.keypoints
         assert topo is not None and X is not None
         samples = object_samples(X, topo)
-        behind = behind_near_object(depth, self.background, self.seg_params, samples, self.K_seg, self.T, arm)
+        thr = change_threshold(self.background, self.seg_params)  # one per frame, for the three tests below
+        behind = behind_near_object(depth, self.background, self.seg_params, samples, self.K_seg, self.T, arm, thr)
         seg = segment_against_background(
-            depth, self.background, self.K_seg, self.T, self.seg_params, arm, X, behind, self._support, samples
+            depth, self.background, self.K_seg, self.T, self.seg_params, arm, X, behind, self._support, samples, thr
         )
         self._timings["segment"] = 1e3 * (time.perf_counter() - t0)
         topology = self.tracker.topology
@@ -441,7 +443,7 @@ class LivePipeline:
         n = (p.background_confirm_2d if topo.kind == "2d" else p.background_confirm_1d) - 1
         prev = np.stack(list(self._prev)[-n:]) if self._prev and n > 0 else None
         self.background = update_background(
-            self.background, depth, self.seg_params, arm, prev, behind, nearest=topo.kind != "2d"
+            self.background, depth, self.seg_params, arm, prev, behind, nearest=topo.kind != "2d", thr=thr
         )
         self._remember(depth)
         if res.status == TrackStatus.LOST:

@@ -843,15 +843,16 @@ def behind_near_object(
     K: np.ndarray,
     T_world_cam: np.ndarray,
     arm_mask: np.ndarray | None = None,
+    thr: np.ndarray | None = None,
 ) -> np.ndarray:
     """(H, W) bool: valid pixels significantly behind the background (m), or without a background
     (0: unknown, e.g. where the object stood still in every reference), whose 3D point lies within
     ``background_object_gap_m`` of the tracked object (points (M, 3) m world, e.g. its densified
     keypoint edges): the object moved away from the camera behind a background that still holds
     it from the reference frames, or is where nothing else was ever seen. Such pixels are object,
-    not revealed background."""
+    not revealed background. thr: ``change_threshold(background)`` when the caller has it."""
     out = valid_depth(depth, params)
-    out &= (background <= 0) | (depth - background > change_threshold(background, params))
+    out &= (background <= 0) | (depth - background > (change_threshold(background, params) if thr is None else thr))
     if arm_mask is not None:
         out &= ~arm_mask
     if len(object_points) == 0 or not out.any():
@@ -871,6 +872,7 @@ def update_background(
     prev_depth: np.ndarray | None = None,
     keep: np.ndarray | None = None,
     nearest: bool = True,
+    thr: np.ndarray | None = None,
 ) -> np.ndarray:
     """Background (H, W) float32 m updated with newly revealed farther surfaces of depth (H, W) m.
 
@@ -886,6 +888,7 @@ def update_background(
     seldom by twice the threshold).
     keep: (H, W) bool pixels not to update (``behind_near_object``: the object, not background). A
     pixel without a background (0) takes the depth it has in all these frames (``keep`` aside).
+    thr: ``change_threshold(background)`` when the caller has it.
     """
     ok = valid_depth(depth, params)
     if arm_mask is not None:
@@ -893,7 +896,7 @@ def update_background(
     if keep is not None:
         ok &= ~keep
     bg_ok = background > 0
-    thr = change_threshold(background, params)
+    thr = change_threshold(background, params) if thr is None else thr
     revealed = ok & bg_ok & (depth - background > thr)
     unknown = ok & ~bg_ok
     out = background.copy()
@@ -951,11 +954,13 @@ def unchanged_object_pixels(
 
 
 def foreground_mask(
-    depth: np.ndarray, background: np.ndarray, params: TrackingParams, arm_mask: np.ndarray | None = None
+    depth: np.ndarray, background: np.ndarray, params: TrackingParams, arm_mask: np.ndarray | None = None,
+    thr: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(H, W) bool: valid pixels significantly in front of the background (m), arm pixels removed."""
+    """(H, W) bool: valid pixels significantly in front of the background (m), arm pixels removed
+    (thr: ``change_threshold(background)`` when the caller has it)."""
     fg = valid_depth(depth, params) & (background > 0)
-    fg &= background - depth > change_threshold(background, params)
+    fg &= background - depth > (change_threshold(background, params) if thr is None else thr)
     if arm_mask is not None:
         fg &= ~arm_mask
     return fg
@@ -972,6 +977,7 @@ def segment_against_background(
     extra: np.ndarray | None = None,
     support: tuple[np.ndarray, float] | None = None,
     samples: np.ndarray | None = None,
+    thr: np.ndarray | None = None,
 ) -> Segmentation:
     """Per-frame segmentation: pixels in front of the background minus arms, clustered.
 
@@ -979,8 +985,9 @@ def segment_against_background(
     them are kept (all of them: an object split by a gripper stays whole), else the largest.
     extra: (H, W) bool pixels known to be object as well (``behind_near_object``). support: the table plane
     (``support_plane``), samples: (S, 3) m points along the previous object (``select_clusters_near``).
+    thr: ``change_threshold(background)`` when the caller has it.
     """
-    fg = foreground_mask(depth, background, params, arm_mask)
+    fg = foreground_mask(depth, background, params, arm_mask, thr)
     if extra is not None:
         fg |= extra
     return _cluster(depth, fg, K, T_world_cam, params, prev_keypoints, support, samples)
