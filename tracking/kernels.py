@@ -482,6 +482,31 @@ def nearest_distances(X: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return out
 
 
+
+@_jit
+def near_any(points: np.ndarray, ref: np.ndarray, r_m: float) -> np.ndarray:
+    """(N,) bool: points (N, 3) m closer than r_m (strictly, as a cKDTree's distance_upper_bound) to some point
+    of ref (R, 3) m; each point scans the slabs of x (``_x_buckets`` of ref) within r_m of it, to the first hit."""
+    n = points.shape[0]
+    out = np.zeros(n, np.bool_)
+    if n == 0 or ref.shape[0] == 0:
+        return out
+    pts, start, lo, w = _x_buckets(ref)
+    B = start.shape[0] - 1
+    r2 = r_m * r_m
+    for i in range(n):
+        x0, x1, x2 = points[i, 0], points[i, 1], points[i, 2]
+        if x0 + r_m < lo or x0 - r_m > lo + B * w:
+            continue
+        b0 = min(max(int(np.floor((x0 - r_m - lo) / w)), 0), B - 1)
+        b1 = min(max(int(np.floor((x0 + r_m - lo) / w)), 0), B - 1)
+        for j in range(start[b0], start[b1 + 1]):
+            if _sq_dist(x0, x1, x2, pts, j) < r2:
+                out[i] = True
+                break
+    return out
+
+
 def warm_up() -> None:
     """Compile the kernels, or load them from numba's cache (~0.3 s), on a two-keypoint problem: a process
     calls this at start-up so that its first tracked frame does not wait for it (the first compile on a

@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from tracking.geometry import depth_to_points, pixel_mask
-from tracking.kernels import dbscan, zbuffer_triangles
+from tracking.kernels import dbscan, near_any, zbuffer_triangles
 from tracking.params import TrackingParams
 
 
@@ -323,40 +323,35 @@ def _within_box(points: np.ndarray, ref: np.ndarray, pad_m: float) -> np.ndarray
     return (x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1]) & (z >= lo[2]) & (z <= hi[2])
 
 
-def _near(points: np.ndarray, tree: cKDTree, r_m: float) -> np.ndarray:
-    """(N,) bool: points (N, 3) m within r_m (m) of some point of the KD-tree ``tree``."""
-    return np.isfinite(tree.query(points, distance_upper_bound=r_m)[0])
+def _near(points: np.ndarray, ref: np.ndarray, r_m: float) -> np.ndarray:
+    """(N,) bool: points (N, 3) m closer than r_m (m) to some ref (R, 3) m (``tracking.kernels.near_any``)."""
+    return near_any(np.ascontiguousarray(points, np.float64), np.ascontiguousarray(ref, np.float64), float(r_m))
 
 
 def _near_points(points: np.ndarray, ref: np.ndarray, r_m: float) -> np.ndarray:
     """(N,) bool: points (N, 3) m within r_m (m) of some ref (R, 3) m; only those inside ref's box grown by r_m
-    are queried, in a KD-tree of ref."""
+    are tested."""
     near = _within_box(points, ref, r_m)
     box = np.flatnonzero(near)
     if len(box):
-        near[box] = _near(points[box], cKDTree(ref), r_m)
+        near[box] = _near(points[box], ref, r_m)
     return near
 
 
 def _clusters_near(
-    points: np.ndarray, labels: np.ndarray, wanted: np.ndarray, ref: np.ndarray, r_m: float, stride: int = 8
+    points: np.ndarray, labels: np.ndarray, wanted: np.ndarray, ref: np.ndarray, r_m: float
 ) -> np.ndarray:
     """(L,) bool: which of the ``wanted`` (L,) bool clusters have a point within r_m (m) of some ref (R, 3) m.
 
     points: (N, 3) m; labels: (N,) int64 cluster (-1: noise), L = len(wanted). Only points inside ref's box
-    grown by r_m can be near; every ``stride``-th of them is tested first (a cluster near ref is mostly found
-    by a few of its points), then all those of the clusters not found yet: the answer of testing every point.
+    grown by r_m can be near.
     """
     near = np.zeros(len(wanted), bool)
     if not wanted.any():
         return near
     idx = np.flatnonzero((labels >= 0) & wanted[np.maximum(labels, 0)] & _within_box(points, ref, r_m))
-    if len(idx) == 0:
-        return near
-    tree = cKDTree(ref)
-    for part in (idx[::stride], idx):
-        part = part[~near[labels[part]]]
-        near[labels[part[_near(points[part], tree, r_m)]]] = True
+    if len(idx):
+        near[labels[idx[_near(points[idx], ref, r_m)]]] = True
     return near
 
 
@@ -389,17 +384,17 @@ def select_clusters_near(
     ref = keypoints if samples is None else samples
     attach = params.track_attach_m
     # the left-out points near the object at all, and the parts of the object near them: only these parts'
-    # coverage by the kept clusters (a KD-tree of the kept points beside them) can decide anything
+    # coverage by the kept clusters (the kept points beside them) can decide anything
     cand = np.flatnonzero(loose)
     cand = cand[_near_points(points[cand], ref, attach)]
     if len(cand) == 0:
         return points[keep]
-    ref = ref[_near(ref, cKDTree(points[cand]), attach)]
+    ref = ref[_near(ref, points[cand], attach)]
     kept = points[keep & _within_box(points, ref, params.dbscan_eps_m)]
     if len(kept):
-        ref = ref[~_near(ref, cKDTree(kept), params.dbscan_eps_m)]
+        ref = ref[~_near(ref, kept, params.dbscan_eps_m)]
     if len(ref):
-        keep[cand[_near(points[cand], cKDTree(ref), attach)]] = True
+        keep[cand[_near(points[cand], ref, attach)]] = True
     return points[keep]
 
 
