@@ -16,6 +16,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from tracking.geometry import object_image, project_points
+from tracking.kernels import nearest
 from tracking.params import TrackingParams
 from tracking.skeleton import JUNCTION, LEAF, skeleton_graph
 
@@ -48,7 +49,8 @@ class Contour3D:
     sides: four (n_i, 3) float64 m polylines corner to corner: top (c0->c1, cols), right (c1->c2, rows),
     bottom (c3->c2, cols), left (c0->c3, rows); sides_uv: the same in image pixels (n_i, 2);
     lengths: (4,) m measured along the dense contour. Kc: (3, 3) camera matrix of the contour image;
-    cloud_uv: (N, 2) cloud pixels in it, tree_uv: their cKDTree; pixel_m: its pixel size at the object, m;
+    cloud_uv: (N, 2) cloud pixels in it, tree_uv: their cKDTree if one was built; pixel_m: its pixel size at the
+    object, m;
     T_world_cam: (4, 4) the camera pose.
     """
 
@@ -57,7 +59,7 @@ class Contour3D:
     lengths: np.ndarray
     Kc: np.ndarray
     cloud_uv: np.ndarray
-    tree_uv: cKDTree
+    tree_uv: cKDTree | None
     pixel_m: float
     T_world_cam: np.ndarray
 
@@ -341,11 +343,16 @@ def contour_3d(
     cc = np.concatenate([c, c[:1]])
     dense = [cc[ci[k] : ci[k + 1] + 1] for k in range(4)]
     sides_uv = [dense[0], dense[1], dense[2][::-1], dense[3][::-1]]
-    tree_uv = cKDTree(uv)
+    tree_uv = None
     if robust:
+        tree_uv = cKDTree(uv)
         lifted = [lift_pixels(s, uv, cloud, SIDE_LIFT_M / px_m, SIDE_LIFT_K, tree_uv) for s in sides_uv]
-    else:
-        lifted = [cloud[tree_uv.query(s)[1]] for s in sides_uv]
+    else:  # each contour pixel's nearest cloud pixel
+        on_image = np.zeros((len(uv), 3))
+        on_image[:, :2] = uv
+        at = np.zeros((sum(len(s) for s in sides_uv), 3))
+        at[:, :2] = np.concatenate(sides_uv)
+        lifted = np.split(cloud[nearest(at, on_image)[1]], np.cumsum([len(s) for s in sides_uv])[:-1])
     lengths = np.array([_polyline_length(_smooth_polyline(p, max(3, int(0.01 / px_m)))) for p in lifted])
     return Contour3D(lifted, sides_uv, lengths, Kc, uv, tree_uv, px_m, np.asarray(T_world_cam, np.float64))
 

@@ -38,10 +38,10 @@ def _insert(d2: float, j: int, best_d: np.ndarray, best_i: np.ndarray, found: in
 
 
 @_jit
-def _x_buckets(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
+def _x_buckets(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float, np.ndarray]:
     """Cloud points pts (M, 3) m counting-sorted into M // 4 + 1 equal slabs of x: (the points in slab order
-    (M, 3), the slabs' starts (B + 1,) into them, the first slab's lower x, the slab width), m. Linear time:
-    a comparison sort of a few thousand points costs more than the solve."""
+    (M, 3), the slabs' starts (B + 1,) into them, the first slab's lower x, the slab width (m), the index in pts
+    of each (M,)). Linear time: a comparison sort of a few thousand points costs more than the solve."""
     M = pts.shape[0]
     B = M // 4 + 1
     lo, hi = pts[:, 0].min(), pts[:, 0].max()
@@ -55,10 +55,12 @@ def _x_buckets(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
         start[b + 1] += start[b]
     fill = start[:-1].copy()
     out = np.empty((M, 3))
+    index = np.empty(M, np.int64)
     for j in range(M):
         out[fill[slab[j]]] = pts[j]
+        index[fill[slab[j]]] = j
         fill[slab[j]] += 1
-    return out, start, lo, w
+    return out, start, lo, w, index
 
 
 @_jit
@@ -194,7 +196,7 @@ def solve_iterations(
     M = pts.shape[0]
     kk = min(max(k, 1), M)
     if M > 0:
-        pts, slabs, lo, w = _x_buckets(pts)  # a keypoint's neighbours lie in a few slabs of x
+        pts, slabs, lo, w, _ = _x_buckets(pts)  # a keypoint's neighbours lie in a few slabs of x
     else:
         slabs, lo, w = np.zeros(1, np.int64), 0.0, 1.0
     centre = np.zeros((N, 3))
@@ -469,18 +471,19 @@ def dbscan(points: np.ndarray, eps_m: float, min_points: int) -> np.ndarray:
 
 
 @_jit
-def nearest_distances(X: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Distance (N,) m from each point X (N, 3) m to its nearest point of pts (M, 3) m, M > 0 (the slab search
-    of the solver: no KD-tree to build for a few dozen queries)."""
-    slab_pts, start, lo, w = _x_buckets(pts)
+def nearest(X: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance (N,) m from each point X (N, 3) m to its nearest point of pts (M, 3) m, M > 0, and that point's
+    index (N,) int64 (the solver's slab search: no KD-tree to build for a few hundred queries)."""
+    slab_pts, start, lo, w, index = _x_buckets(pts)
     best_d = np.empty(1)
     best_i = np.empty(1, np.int64)
-    out = np.empty(X.shape[0])
+    dist = np.empty(X.shape[0])
+    idx = np.empty(X.shape[0], np.int64)
     for n in range(X.shape[0]):
         _knn_slabs(X[n, 0], X[n, 1], X[n, 2], slab_pts, start, lo, w, 1, best_d, best_i)
-        out[n] = np.sqrt(best_d[0])
-    return out
-
+        dist[n] = np.sqrt(best_d[0])
+        idx[n] = index[best_i[0]]
+    return dist, idx
 
 
 @_jit
@@ -491,7 +494,7 @@ def near_any(points: np.ndarray, ref: np.ndarray, r_m: float) -> np.ndarray:
     out = np.zeros(n, np.bool_)
     if n == 0 or ref.shape[0] == 0:
         return out
-    pts, start, lo, w = _x_buckets(ref)
+    pts, start, lo, w, _ = _x_buckets(ref)
     B = start.shape[0] - 1
     r2 = r_m * r_m
     for i in range(n):

@@ -6,7 +6,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from tracking.kernels import nearest_distances
+from tracking.kernels import nearest
 
 
 def edge_lengths(X: np.ndarray, edges: np.ndarray) -> np.ndarray:
@@ -23,13 +23,13 @@ def edge_rmse_mm(X: np.ndarray, edges: np.ndarray, rest: np.ndarray) -> float:
 
 def chamfer_mm(X: np.ndarray, cloud: np.ndarray | cKDTree) -> float:
     """CD: mean (mm) over keypoints X (N, 3) m of the distance to the nearest segmented point (M, 3) m (or
-    of a cKDTree's; without one, ``tracking.kernels.nearest_distances``, cheaper than building a tree)."""
+    of a cKDTree's; without one, ``tracking.kernels.nearest``, cheaper than building a tree)."""
     if isinstance(cloud, cKDTree):
         return float(1e3 * np.mean(cloud.query(X)[0])) if cloud.n else float("inf")
     if len(cloud) == 0:
         return float("inf")
     X = np.ascontiguousarray(X, np.float64).reshape(-1, 3)
-    return float(1e3 * np.mean(nearest_distances(X, np.ascontiguousarray(cloud, np.float64).reshape(-1, 3))))
+    return float(1e3 * np.mean(nearest(X, np.ascontiguousarray(cloud, np.float64).reshape(-1, 3))[0]))
 
 
 def percent_below(values: np.ndarray, threshold: float) -> float:
