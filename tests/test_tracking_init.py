@@ -172,16 +172,25 @@ def test_refine_corners_is_steady_under_contour_jitter() -> None:
     assert (spread < 0.7).all(), spread
 
 
-def test_nanmedian_rows_matches_numpy() -> None:
-    from tracking.anchors import _nanmedian_rows
+def test_lift_pixels_is_the_median_of_the_near_cloud_points() -> None:
+    """The compiled lift against a KD-tree query and numpy's nanmedian: up to k cloud points whose pixels lie
+    closer than the radius, else the nearest one (pixels far from every cloud pixel)."""
+    from scipy.spatial import cKDTree
+
+    from tracking.anchors import lift_pixels
 
     rng = np.random.default_rng(1)
-    for k in (1, 2, 5, 16):
-        nb = rng.normal(size=(200, k, 3))
-        missing = rng.random((200, k)) < 0.4
-        missing[:, 0] = False  # every row has a point
-        nb[missing] = np.nan
-        np.testing.assert_allclose(_nanmedian_rows(nb), np.nanmedian(nb, axis=1))
+    uv = rng.uniform(0, 200, (3000, 2))
+    cloud = rng.normal(size=(3000, 3))
+    pix = np.concatenate([rng.uniform(0, 200, (300, 2)), rng.uniform(250, 300, (20, 2))])
+    for k, radius in ((1, 2.0), (2, 3.0), (5, 1.5), (16, 4.0)):
+        d, i = cKDTree(uv).query(pix, k=k, distance_upper_bound=radius)
+        d, i = d.reshape(len(pix), k), i.reshape(len(pix), k)
+        nb = np.where(np.isfinite(d)[..., None], cloud[np.minimum(i, len(cloud) - 1)], np.nan)
+        none = ~np.isfinite(d[:, 0])
+        nb[none, 0] = cloud[cKDTree(uv).query(pix[none])[1]]
+        assert none.sum() >= 20
+        np.testing.assert_array_equal(lift_pixels(pix, uv, cloud, radius, k), np.nanmedian(nb, axis=1))
 
 
 def test_savgol_quadratic_matches_scipy() -> None:

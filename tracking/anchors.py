@@ -16,7 +16,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from tracking.geometry import object_image, project_points
-from tracking.kernels import nearest
+from tracking.kernels import lift_median, nearest
 from tracking.params import TrackingParams
 from tracking.skeleton import JUNCTION, LEAF, skeleton_graph
 
@@ -49,8 +49,7 @@ class Contour3D:
     sides: four (n_i, 3) float64 m polylines corner to corner: top (c0->c1, cols), right (c1->c2, rows),
     bottom (c3->c2, cols), left (c0->c3, rows); sides_uv: the same in image pixels (n_i, 2);
     lengths: (4,) m measured along the dense contour. Kc: (3, 3) camera matrix of the contour image;
-    cloud_uv: (N, 2) cloud pixels in it, tree_uv: their cKDTree if one was built; pixel_m: its pixel size at the
-    object, m;
+    cloud_uv: (N, 2) cloud pixels in it; pixel_m: its pixel size at the object, m;
     T_world_cam: (4, 4) the camera pose.
     """
 
@@ -59,40 +58,26 @@ class Contour3D:
     lengths: np.ndarray
     Kc: np.ndarray
     cloud_uv: np.ndarray
-    tree_uv: cKDTree | None
     pixel_m: float
     T_world_cam: np.ndarray
 
 
-def lift_pixels(
-    pix_uv: np.ndarray, cloud_uv: np.ndarray, cloud: np.ndarray, radius_px: float, k: int,
-    tree: cKDTree | None = None,
-) -> np.ndarray:
+def lift_pixels(pix_uv: np.ndarray, cloud_uv: np.ndarray, cloud: np.ndarray, radius_px: float, k: int) -> np.ndarray:
     """Robust 3D of image points: median of up to k cloud points projected within radius_px, else the nearest.
 
-    pix_uv: (P, 2) pixels (col, row); cloud_uv: (N, 2) pixels of cloud (N, 3) m; tree: their
-    cKDTree if already built. Returns (P, 3) float64 m.
+    pix_uv: (P, 2) pixels (col, row); cloud_uv: (N, 2) pixels of cloud (N, 3) m. Returns (P, 3) float64 m
+    (``tracking.kernels.lift_median``).
     """
     if len(pix_uv) == 0:
         return np.zeros((0, 3))
-    tree = cKDTree(cloud_uv) if tree is None else tree
-    k = min(k, len(cloud))
-    d, idx = tree.query(pix_uv, k=k, distance_upper_bound=radius_px)
-    d, idx = d.reshape(len(pix_uv), k), idx.reshape(len(pix_uv), k)
-    nb = np.where(np.isfinite(d)[..., None], cloud[np.minimum(idx, len(cloud) - 1)], np.nan)
-    none = ~np.isfinite(d[:, 0])
-    nb[none, 0] = cloud[tree.query(pix_uv[none])[1]]
-    return _nanmedian_rows(nb)
+    return lift_median(_on_image(pix_uv), _on_image(cloud_uv), np.ascontiguousarray(cloud, np.float64), radius_px, k)
 
 
-def _nanmedian_rows(nb: np.ndarray) -> np.ndarray:
-    """``np.nanmedian(nb, axis=1)`` of (P, k, D) points whose missing ones are NaN in every coordinate
-    and each row has one at least, (P, D); sort-based, a tenth of nanmedian's time (per-frame cloth anchors)."""
-    s = np.sort(nb, axis=1)  # NaN last
-    n = np.isfinite(nb[:, :, 0]).sum(axis=1)
-    lo = np.take_along_axis(s, ((n - 1) // 2)[:, None, None], axis=1)[:, 0]
-    hi = np.take_along_axis(s, (n // 2)[:, None, None], axis=1)[:, 0]
-    return 0.5 * (lo + hi)
+def _on_image(uv: np.ndarray) -> np.ndarray:
+    """Image points uv (N, 2) as (N, 3) float64 points at z 0, for the compiled 3D searches."""
+    out = np.zeros((len(uv), 3))
+    out[:, :2] = uv
+    return out
 
 
 def _smooth_polyline(p: np.ndarray, window: int) -> np.ndarray:
@@ -343,18 +328,13 @@ def contour_3d(
     cc = np.concatenate([c, c[:1]])
     dense = [cc[ci[k] : ci[k + 1] + 1] for k in range(4)]
     sides_uv = [dense[0], dense[1], dense[2][::-1], dense[3][::-1]]
-    tree_uv = None
     if robust:
-        tree_uv = cKDTree(uv)
-        lifted = [lift_pixels(s, uv, cloud, SIDE_LIFT_M / px_m, SIDE_LIFT_K, tree_uv) for s in sides_uv]
+        lifted = [lift_pixels(s, uv, cloud, SIDE_LIFT_M / px_m, SIDE_LIFT_K) for s in sides_uv]
     else:  # each contour pixel's nearest cloud pixel
-        on_image = np.zeros((len(uv), 3))
-        on_image[:, :2] = uv
-        at = np.zeros((sum(len(s) for s in sides_uv), 3))
-        at[:, :2] = np.concatenate(sides_uv)
-        lifted = np.split(cloud[nearest(at, on_image)[1]], np.cumsum([len(s) for s in sides_uv])[:-1])
+        at = _on_image(np.concatenate(sides_uv))
+        lifted = np.split(cloud[nearest(at, _on_image(uv))[1]], np.cumsum([len(s) for s in sides_uv])[:-1])
     lengths = np.array([_polyline_length(_smooth_polyline(p, max(3, int(0.01 / px_m)))) for p in lifted])
-    return Contour3D(lifted, sides_uv, lengths, Kc, uv, tree_uv, px_m, np.asarray(T_world_cam, np.float64))
+    return Contour3D(lifted, sides_uv, lengths, Kc, uv, px_m, np.asarray(T_world_cam, np.float64))
 
 
 @lru_cache(maxsize=64)
@@ -444,7 +424,7 @@ def lift_grid(ct: Contour3D, cloud: np.ndarray, rows: int, cols: int) -> np.ndar
     """Grid keypoints (rows*cols, 3) m: the Coons grid in the image lifted robustly (``lift_pixels``), boundary
     nodes on the smoothed sides (``grid_boundary``)."""
     g, b = grid_boundary(ct, rows, cols)
-    X = lift_pixels(g.reshape(-1, 2), ct.cloud_uv, cloud, 3.0, 8, ct.tree_uv)
+    X = lift_pixels(g.reshape(-1, 2), ct.cloud_uv, cloud, 3.0, 8)
     b = b.reshape(-1, 3)
     on = np.isfinite(b[:, 0])
     X[on] = b[on]

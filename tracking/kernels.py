@@ -487,6 +487,33 @@ def nearest(X: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @_jit
+def lift_median(pix: np.ndarray, uv: np.ndarray, cloud: np.ndarray, radius: float, k: int) -> np.ndarray:
+    """Per query pix (P, 3) (image points, z 0): the per-coordinate median (P, 3) of the cloud (N, 3) points
+    whose image points uv (N, 3) (z 0) are among its k nearest and closer than radius, else of its nearest one.
+    N > 0, k >= 1."""
+    slab_uv, start, lo, w, index = _x_buckets(uv)
+    k = min(k, uv.shape[0])
+    best_d = np.empty(k)
+    best_i = np.empty(k, np.int64)
+    vals = np.empty(k)
+    out = np.empty((pix.shape[0], 3))
+    r2 = radius * radius
+    for n in range(pix.shape[0]):
+        found = _knn_slabs(pix[n, 0], pix[n, 1], pix[n, 2], slab_uv, start, lo, w, k, best_d, best_i)
+        m = 0
+        while m < found and best_d[m] < r2:
+            m += 1
+        if m == 0:
+            m = 1  # none within the radius: the nearest
+        for c in range(3):
+            for a in range(m):
+                vals[a] = cloud[index[best_i[a]], c]
+            v = np.sort(vals[:m])
+            out[n, c] = 0.5 * (v[(m - 1) // 2] + v[m // 2])
+    return out
+
+
+@_jit
 def near_any(points: np.ndarray, ref: np.ndarray, r_m: float) -> np.ndarray:
     """(N,) bool: points (N, 3) m closer than r_m (strictly, as a cKDTree's distance_upper_bound) to some point
     of ref (R, 3) m; each point scans the slabs of x (``_x_buckets`` of ref) within r_m of it, to the first hit."""
