@@ -12,7 +12,7 @@ PYTEST := $(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile
 
 .PHONY: demo test test-quick kernels lint bench system-deps clean docker-build docker-check
 
-demo: $(STAMP)
+demo: $(STAMP) kernels
 	$(BIN)/trackdeform demo $(DEMO_ARGS)
 
 test: $(STAMP) kernels
@@ -25,10 +25,10 @@ test-quick: $(STAMP) kernels
 	$(BIN)/lint-imports
 	$(PYTEST) -m "not slow"
 
-# Compile the numba kernels once (~15 s on a new machine, cached beside the code) before the test processes
-# would each compile them.
+# Compile the numba kernels once (~15-30 s on a new machine, cached beside the code in tracking/__pycache__)
+# before the demo's worker or the test processes would each compile them; later runs load them in ~0.3 s.
 kernels: $(STAMP)
-	$(BIN)/python -c "from tracking.kernels import warm_up; warm_up()"
+	@$(BIN)/python -m tracking.kernels
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

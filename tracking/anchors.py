@@ -70,7 +70,9 @@ def lift_pixels(pix_uv: np.ndarray, cloud_uv: np.ndarray, cloud: np.ndarray, rad
     """
     if len(pix_uv) == 0:
         return np.zeros((0, 3))
-    return lift_median(_on_image(pix_uv), _on_image(cloud_uv), np.ascontiguousarray(cloud, np.float64), radius_px, k)
+    return lift_median(
+        _on_image(pix_uv), _on_image(cloud_uv), np.ascontiguousarray(cloud, np.float64), float(radius_px), int(k)
+    )
 
 
 def _on_image(uv: np.ndarray) -> np.ndarray:

@@ -538,12 +538,28 @@ def near_any(points: np.ndarray, ref: np.ndarray, r_m: float) -> np.ndarray:
 
 
 def warm_up() -> None:
-    """Compile the kernels, or load them from numba's cache (~0.3 s), on a two-keypoint problem: a process
-    calls this at start-up so that its first tracked frame does not wait for it (the first compile on a
-    machine takes ~15 s)."""
+    """Compile every kernel, or load them from numba's cache (~0.3 s), on tiny inputs of the types the tracker
+    passes: a process calls this at start-up so that its first tracked frame does not wait for it (compiling
+    them on a new machine takes ~30 s)."""
     X = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]])
     one = np.ones(1)
     solve_iterations(
-        X, np.zeros(1, np.int64), np.ones(1, np.int64), one, one, 0.01 * one, np.ascontiguousarray(X + 0.001), 2,
-        0.003, np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(1, np.int64), X[:1].copy(), 1,
+        X.copy(), np.zeros(1, np.int64), np.ones(1, np.int64), one, one, 0.01 * one, X + 0.001, 2, 0.003,
+        np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(1, np.int64), X[:1].copy(), 1,
     )
+    dbscan(X, 0.015, 2)
+    near_any(X, X + 0.001, 0.01)
+    nearest(X, X + 0.001)
+    lift_median(X, X + 0.001, X, 1.0, 2)
+    uv = np.array([10.0, 20.0, 10.0])
+    zbuffer_triangles(uv, np.array([10.0, 10.0, 20.0]), X[[0, 1, 1]] + [0.0, 0.0, 1.0], np.array([[0, 1, 2]]),
+                      0, 20, 0, 20, 1, 500.0, 500.0, 10.0, 10.0)
+
+
+if __name__ == "__main__":  # make kernels
+    import time
+
+    t0 = time.perf_counter()
+    warm_up()
+    if time.perf_counter() - t0 > 2.0:
+        print(f"tracking kernels compiled in {time.perf_counter() - t0:.0f} s (cached in tracking/__pycache__)")

@@ -209,7 +209,9 @@ def rasterise_depth(
         away = np.einsum("ij,ij->i", np.cross(vc[tri[:, 1]] - q0, vc[tri[:, 2]] - q0), q0) >= 0
         tri = tri[~(away & cullable)]
     tri = np.ascontiguousarray(tri)
-    grid = zbuffer_triangles(u, v, vc, tri, r0, nr, c0, nc, stride, float(fx), float(fy), float(cx), float(cy))
+    grid = zbuffer_triangles(
+        u, v, vc, tri, r0, nr, c0, nc, int(stride), float(fx), float(fy), float(cx), float(cy)
+    )
     block = np.repeat(np.repeat(grid.reshape(nr, nc).astype(np.float32), stride, axis=0), stride, axis=1)
     out[r0:r1, c0:c1] = block[: r1 - r0, : c1 - c0]
     return out
