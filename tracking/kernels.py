@@ -359,6 +359,42 @@ def _cells(points: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, np.
 
 
 @_jit
+def voxel_centroids(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points (N, 3) m grouped by voxel of edge voxel_m: (centroids (M, 3) m in the order of the voxels' keys
+    ((x Dy + y) Dz + z of their integer coordinates from the points' minimum), the voxel of each point (N,)
+    int64). Each centroid sums its points in their order, as np.bincount would. N > 0."""
+    n = points.shape[0]
+    c = np.empty((n, 3), np.int64)
+    for a in range(n):
+        for i in range(3):
+            c[a, i] = int(np.floor(points[a, i] / voxel_m))
+    lo = np.empty(3, np.int64)
+    for i in range(3):
+        lo[i] = c[:, i].min()
+    Dy = c[:, 1].max() - lo[1] + 1
+    Dz = c[:, 2].max() - lo[2] + 1
+    key = ((c[:, 0] - lo[0]) * Dy + (c[:, 1] - lo[1])) * Dz + (c[:, 2] - lo[2])
+    order = np.argsort(key)
+    inv = np.empty(n, np.int64)
+    m = -1
+    for a in range(n):
+        if a == 0 or key[order[a]] != key[order[a - 1]]:
+            m += 1
+        inv[order[a]] = m
+    m += 1
+    sums = np.zeros((m, 3))
+    cnt = np.zeros(m)
+    for a in range(n):
+        for i in range(3):
+            sums[inv[a], i] += points[a, i]
+        cnt[inv[a]] += 1.0
+    for g in range(m):
+        for i in range(3):
+            sums[g, i] /= cnt[g]
+    return sums, inv
+
+
+@_jit
 def _find(parent: np.ndarray, a: int) -> int:
     while parent[a] != a:
         parent[a] = parent[parent[a]]
@@ -548,6 +584,7 @@ def warm_up() -> None:
         np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(1, np.int64), X[:1].copy(), 1,
     )
     dbscan(X, 0.015, 2)
+    voxel_centroids(X, 0.009)
     near_any(X, X + 0.001, 0.01)
     nearest(X, X + 0.001)
     lift_median(X, X + 0.001, X, 1.0, 2)

@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from tracking.geometry import depth_to_points, pixel_mask
-from tracking.kernels import dbscan, near_any, zbuffer_triangles
+from tracking.kernels import dbscan, near_any, voxel_centroids, zbuffer_triangles
 from tracking.params import TrackingParams
 
 
@@ -270,16 +270,11 @@ def dbscan_labels(points: np.ndarray, eps_m: float, min_points: int) -> np.ndarr
 
 
 def voxel_groups(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Group points (N, 3) m by voxel of size voxel_m -> (centroids (M, 3) m, voxel of each point (N,) int64)."""
-    keys = np.floor(points / voxel_m).astype(np.int64)
-    keys -= keys.min(axis=0)
-    dims = keys.max(axis=0) + 1
-    flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-    _, inv = np.unique(flat, return_inverse=True)
-    m = int(inv.max()) + 1
-    cnt = np.bincount(inv, minlength=m)
-    cen = np.stack([np.bincount(inv, points[:, k], m) for k in range(3)], axis=1) / cnt[:, None]
-    return cen, inv
+    """Group points (N, 3) m by voxel of size voxel_m -> (centroids (M, 3) m, voxel of each point (N,) int64)
+    (``tracking.kernels.voxel_centroids``)."""
+    if len(points) == 0:
+        return np.zeros((0, 3)), np.zeros(0, np.int64)
+    return voxel_centroids(np.ascontiguousarray(points, np.float64), float(voxel_m))
 
 
 def coarse_dbscan_labels(points: np.ndarray, params: TrackingParams) -> np.ndarray:
