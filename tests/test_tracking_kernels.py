@@ -142,3 +142,37 @@ def test_compiled_dbscan_equals_reference(seed):
         np.testing.assert_array_equal(got, _reference_dbscan(pts, eps, mp))
     assert dbscan_labels(np.zeros((0, 3)), 0.015, 3).shape == (0,)
     assert dbscan_labels(np.zeros((1, 3)), 0.015, 1).tolist() == [0]
+
+
+def test_compiled_searches_equal_kd_tree_queries():
+    """near_any and nearest against cKDTree's distance_upper_bound (strict) and nearest-neighbour queries, with
+    points far outside the references' extent and a single reference."""
+    from tracking.kernels import near_any, nearest
+
+    rng = np.random.default_rng(5)
+    for n, m, r in ((4000, 300, 0.02), (3000, 3000, 0.015), (500, 1, 0.5)):
+        P = np.concatenate([rng.normal(size=(n, 3)) * 0.2, rng.normal(size=(20, 3)) + 5.0])
+        R = rng.normal(size=(m, 3)) * 0.2
+        d, i = cKDTree(R).query(P)
+        np.testing.assert_array_equal(near_any(P, R, r), d < r)
+        got_d, got_i = nearest(P, R)
+        np.testing.assert_array_equal(got_d, d)
+        np.testing.assert_array_equal(got_i, i)
+    on_border = np.array([[0.0, 0.0, 0.0]])
+    assert not near_any(on_border, np.array([[0.5, 0.0, 0.0]]), 0.5)[0]  # exactly r away: not closer than r
+
+
+def test_compiled_voxel_centroids_equal_numpy():
+    from tracking.segmentation import voxel_groups
+
+    rng = np.random.default_rng(6)
+    for n in (1, 7, 5000):
+        P = rng.normal(size=(n, 3)) * 0.1 - 0.3
+        keys = np.floor(P / 0.009).astype(np.int64)
+        _, inv = np.unique([tuple(k) for k in keys], axis=0, return_inverse=True)
+        inv = inv.ravel()
+        cnt = np.bincount(inv)
+        cen = np.stack([np.bincount(inv, P[:, k]) for k in range(3)], axis=1) / cnt[:, None]
+        got_cen, got_inv = voxel_groups(P, 0.009)
+        np.testing.assert_array_equal(got_inv, inv)
+        np.testing.assert_array_equal(got_cen, cen)
