@@ -66,11 +66,12 @@ def _x_buckets(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float, n
 @_jit
 def _knn_slabs(
     x0: float, x1: float, x2: float, pts: np.ndarray, start: np.ndarray, lo: float, w: float, k: int,
-    best_d: np.ndarray, best_i: np.ndarray,
+    best_d: np.ndarray, best_i: np.ndarray, bound2: float = np.inf,
 ) -> int:
     """The k nearest points to (x0, x1, x2) of pts, start, lo, w (``_x_buckets``) into best_d (squared
     distances) and best_i, nearest first: the slabs are visited outwards from x0's, each side until its x gap
-    alone exceeds the k-th distance. Returns how many were found (k unless pts has fewer)."""
+    alone exceeds the k-th distance, or reaches sqrt(bound2) (then only the nearest within it are complete).
+    Returns how many were found (k unless pts has fewer)."""
     B = start.shape[0] - 1
     home = min(max(int(np.floor((x0 - lo) / w)), 0), B - 1)
     found = 0
@@ -80,7 +81,7 @@ def _knn_slabs(
     while right < B or left >= 0:
         if right < B:
             g = lo + right * w - x0  # x gap to the slab
-            if found == k and g > 0 and g * g > best_d[k - 1]:
+            if g > 0 and ((found == k and g * g > best_d[k - 1]) or g * g >= bound2):
                 right = B
             else:
                 for j in range(start[right], start[right + 1]):
@@ -88,7 +89,7 @@ def _knn_slabs(
                 right += 1
         if left >= 0:
             g = x0 - (lo + (left + 1) * w)
-            if found == k and g > 0 and g * g > best_d[k - 1]:
+            if g > 0 and ((found == k and g * g > best_d[k - 1]) or g * g >= bound2):
                 left = -1
             else:
                 for j in range(start[left], start[left + 1]):
@@ -561,12 +562,13 @@ def lift_median(pix: np.ndarray, uv: np.ndarray, cloud: np.ndarray, radius: floa
     out = np.empty((pix.shape[0], 3))
     r2 = radius * radius
     for n in range(pix.shape[0]):
-        found = _knn_slabs(pix[n, 0], pix[n, 1], pix[n, 2], slab_uv, start, lo, w, k, best_d, best_i)
+        found = _knn_slabs(pix[n, 0], pix[n, 1], pix[n, 2], slab_uv, start, lo, w, k, best_d, best_i, r2)
         m = 0
         while m < found and best_d[m] < r2:
             m += 1
-        if m == 0:
-            m = 1  # none within the radius: the nearest
+        if m == 0:  # none within the radius: the nearest
+            _knn_slabs(pix[n, 0], pix[n, 1], pix[n, 2], slab_uv, start, lo, w, 1, best_d, best_i)
+            m = 1
         for c in range(3):
             for a in range(m):
                 vals[a] = cloud[index[best_i[a]], c]
