@@ -1,9 +1,12 @@
-"""Compiled inner loops (numba) of Algorithm 1's iterations.
+"""Compiled inner loops (numba) of the tracker: Algorithm 1's iterations, nearest-point searches, DBSCAN, voxel
+grouping and the arm z-buffer.
 
-One solver iteration is a few hundred flops per keypoint; in numpy it is ~40 array calls and a KD-tree
-query, whose call overhead (~200 us an iteration, 30 iterations a frame) was most of the solve. These
-kernels do the same arithmetic in the same order per keypoint and edge, compiled once per machine
-(``cache=True`` keeps the machine code beside this file, or in ``NUMBA_CACHE_DIR``).
+Their numpy form was mostly call overhead over small arrays (a solver iteration is a few hundred flops per
+keypoint but ~40 array calls and a KD-tree query; a cKDTree is built for a few dozen queries). These kernels do the
+same arithmetic in the same order as that numpy code, so keypoints stay bit-identical unless a tie between equally
+distant points is broken differently. Neighbour searches use slabs of x or grid cells ordered by counting / radix
+sorts, linear in the points. Compiled once per machine (``cache=True`` keeps the machine code beside this file, or
+in ``NUMBA_CACHE_DIR``); ``warm_up`` loads them all.
 """
 
 from __future__ import annotations
@@ -326,18 +329,18 @@ def zbuffer_triangles(
 
 @_jit
 def _cells(points: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, int]:
-    """Points (N, 3) m binned into cubic cells of edge size m: (order (N,) the points sorted by cell, cell_key (C,)
-    sorted keys of the occupied cells, start (C + 1,) their ranges in order, key (N,) each point's, Dy, Dz).
-    A key is (x Dy + y) Dz + z of the cell's integer coordinates, padded by one cell on every side, so the
-    key of a neighbouring cell is the key plus a constant offset."""
+    """Points (N, 3) m, N > 0, binned into the cubic cells floor(p / size) of edge size m: (order (N,) the points
+    sorted by cell, cell_key (C,) sorted keys of the occupied cells, start (C + 1,) their ranges in order, key (N,)
+    each point's, Dy, Dz). A key is (x Dy + y) Dz + z of the cell's integer coordinates from the lowest occupied
+    ones, padded by one cell on every side, so the key of a neighbouring cell is the key plus a constant offset;
+    keys order the cells as (x, y, z) tuples do."""
     n = points.shape[0]
-    lo = np.empty(3)
-    for i in range(3):
-        lo[i] = points[:, i].min()
     c = np.empty((n, 3), np.int64)
     for a in range(n):
         for i in range(3):
-            c[a, i] = int(np.floor((points[a, i] - lo[i]) / size)) + 1
+            c[a, i] = int(np.floor(points[a, i] / size))
+    for i in range(3):
+        c[:, i] -= c[:, i].min() - 1
     Dy = c[:, 1].max() + 2
     Dz = c[:, 2].max() + 2
     key = (c[:, 0] * Dy + c[:, 1]) * Dz + c[:, 2]
@@ -386,31 +389,18 @@ def _argsort_keys(key: np.ndarray) -> np.ndarray:
 
 @_jit
 def voxel_centroids(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Points (N, 3) m grouped by voxel of edge voxel_m: (centroids (M, 3) m in the order of the voxels' keys
-    ((x Dy + y) Dz + z of their integer coordinates from the points' minimum), the voxel of each point (N,)
-    int64). Each centroid sums its points in their order, as np.bincount would. N > 0."""
-    n = points.shape[0]
-    c = np.empty((n, 3), np.int64)
-    for a in range(n):
-        for i in range(3):
-            c[a, i] = int(np.floor(points[a, i] / voxel_m))
-    lo = np.empty(3, np.int64)
-    for i in range(3):
-        lo[i] = c[:, i].min()
-    Dy = c[:, 1].max() - lo[1] + 1
-    Dz = c[:, 2].max() - lo[2] + 1
-    key = ((c[:, 0] - lo[0]) * Dy + (c[:, 1] - lo[1])) * Dz + (c[:, 2] - lo[2])
-    order = _argsort_keys(key)
-    inv = np.empty(n, np.int64)
-    m = -1
-    for a in range(n):
-        if a == 0 or key[order[a]] != key[order[a - 1]]:
-            m += 1
-        inv[order[a]] = m
-    m += 1
+    """Points (N, 3) m, N > 0, grouped by voxel floor(p / voxel_m): (centroids (M, 3) m in the voxels' (x, y, z)
+    order (``_cells``), the voxel of each point (N,) int64). Each centroid sums its points in their order, as
+    np.bincount would."""
+    order, cell_key, start, _, _, _ = _cells(points, voxel_m)
+    m = cell_key.shape[0]
+    inv = np.empty(points.shape[0], np.int64)
+    for g in range(m):
+        for p in range(start[g], start[g + 1]):
+            inv[order[p]] = g
     sums = np.zeros((m, 3))
     cnt = np.zeros(m)
-    for a in range(n):
+    for a in range(points.shape[0]):
         for i in range(3):
             sums[inv[a], i] += points[a, i]
         cnt[inv[a]] += 1.0
