@@ -257,6 +257,7 @@ def solve_iterations(
                 r0, r1, r2 = x[0] - p[0], x[1] - p[1], x[2] - p[2]
                 o = np.empty(3)
                 for i in range(3):
+                    # terms 0 and 2 first, as numpy's einsum adds a length-3 product: the numpy solver's bits
                     o[i] = (r0 * proj[n, i, 0] + r2 * proj[n, i, 2]) + r1 * proj[n, i, 1]
                 norm = np.sqrt(o[0] * o[0] + o[1] * o[1] + o[2] * o[2])
                 g = max_slide_m / max(norm, max(max_slide_m, 1e-12))
