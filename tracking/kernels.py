@@ -67,6 +67,14 @@ def _x_buckets(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float, n
 
 
 @_jit
+def _slab_range(x0: float, r: float, lo: float, w: float, B: int) -> tuple[int, int]:
+    """First and last of the B slabs (``_x_buckets``: lower x lo, width w) that hold x within r of x0."""
+    b0 = min(max(int(np.floor((x0 - r - lo) / w)), 0), B - 1)
+    b1 = min(max(int(np.floor((x0 + r - lo) / w)), 0), B - 1)
+    return b0, b1
+
+
+@_jit
 def _knn_slabs(
     x0: float, x1: float, x2: float, pts: np.ndarray, start: np.ndarray, lo: float, w: float, k: int,
     best_d: np.ndarray, best_i: np.ndarray, bound2: float = np.inf,
@@ -115,8 +123,7 @@ def _refresh(
     _knn_slabs(x0, x1, x2, pts, start, lo, w, k, best_d, best_i)
     r = 2.0 * np.sqrt(best_d[k - 1]) + 1e-9
     r2 = r * r
-    b0 = min(max(int(np.floor((x0 - r - lo) / w)), 0), B - 1)
-    b1 = min(max(int(np.floor((x0 + r - lo) / w)), 0), B - 1)
+    b0, b1 = _slab_range(x0, r, lo, w, B)
     n = 0
     for j in range(start[b0], start[b1 + 1]):
         if _sq_dist(x0, x1, x2, pts, j) <= r2:
@@ -139,7 +146,7 @@ def _refresh(
 @_jit
 def _extent_projector(nb: np.ndarray, out: np.ndarray) -> None:
     """Projector (3, 3) into out onto the span of the principal directions of the points nb (k, 3) whose
-    variance is at least 10 % of the largest (``tracking.solver.extent_projectors`` for one neighbourhood)."""
+    variance is at least 10 % of the largest (a surface's tangent plane, a line's tangent)."""
     k = nb.shape[0]
     mean = np.zeros(3)
     for a in range(k):
@@ -186,12 +193,12 @@ def solve_iterations(
 ) -> None:
     """Algorithm 1's iterations on keypoints X (N, 3) m, in place.
 
-    Edges (E,) in colour-class order (``tracking.solver.edge_plan``): e_first, e_second int64 endpoints, e_wi,
+    Edges (E,) in colour-class order (``tracking.solver.edge_colouring``): e_first, e_second int64 endpoints, e_wi,
     e_wj their inverse masses (0: fixed), e_rest m; no edges: E = 0. pts: (M, 3) m cloud, M = 0: no cloud
     projection. Each iteration: one Gauss-Seidel sweep of the edges; every keypoint to the cloud (k <= 1: its
     nearest point; else nearest point plus its offset restricted to the local extent of its k nearest points,
-    clamped to max_slide_m, ``tracking.solver.project_to_cloud``); soft anchors soft_idx (S,) moved the fraction
-    soft_w (S,) of the way to soft_pos (S, 3); hard anchors hard_idx (H,) put on hard_pos (H, 3).
+    clamped to max_slide_m: keypoints slide below the cloud's point spacing); soft anchors soft_idx (S,) moved
+    the fraction soft_w (S,) of the way to soft_pos (S, 3); hard anchors hard_idx (H,) put on hard_pos (H, 3).
     The k nearest cloud points are searched among a keypoint's candidates (the points within a radius of where
     they were last gathered from the whole cloud, ``_refresh``), exact while the k-th distance is within that
     radius less the keypoint's move since; otherwise gathered again.
@@ -254,15 +261,14 @@ def solve_iterations(
                         nb[a] = pts[best_i[a]]
                     _extent_projector(nb, proj[n])
                     members[n] = srt
-                r0, r1, r2 = x[0] - p[0], x[1] - p[1], x[2] - p[2]
-                o = np.empty(3)
-                for i in range(3):
-                    # terms 0 and 2 first, as numpy's einsum adds a length-3 product: the numpy solver's bits
-                    o[i] = (r0 * proj[n, i, 0] + r2 * proj[n, i, 2]) + r1 * proj[n, i, 1]
-                norm = np.sqrt(o[0] * o[0] + o[1] * o[1] + o[2] * o[2])
-                g = max_slide_m / max(norm, max(max_slide_m, 1e-12))
-                for i in range(3):
-                    X[n, i] = p[i] + o[i] * g
+                r0, r1, r2 = x0 - p[0], x1 - p[1], x2 - p[2]
+                P = proj[n]
+                # terms 0 and 2 first, as numpy's einsum adds a length-3 product: the numpy solver's bits
+                o0 = (r0 * P[0, 0] + r2 * P[0, 2]) + r1 * P[0, 1]
+                o1 = (r0 * P[1, 0] + r2 * P[1, 2]) + r1 * P[1, 1]
+                o2 = (r0 * P[2, 0] + r2 * P[2, 2]) + r1 * P[2, 1]
+                g = max_slide_m / max(np.sqrt(o0 * o0 + o1 * o1 + o2 * o2), max(max_slide_m, 1e-12))
+                X[n, 0], X[n, 1], X[n, 2] = p[0] + o0 * g, p[1] + o1 * g, p[2] + o2 * g
         for a in range(len(soft_idx)):
             n = soft_idx[a]
             for i in range(3):
@@ -270,7 +276,6 @@ def solve_iterations(
         for a in range(len(hard_idx)):
             for i in range(3):
                 X[hard_idx[a], i] = hard_pos[a, i]
-
 
 
 @_jit
@@ -325,7 +330,6 @@ def zbuffer_triangles(
                 if z < grid[k]:
                     grid[k] = z
     return grid
-
 
 
 @_jit
@@ -523,7 +527,6 @@ def dbscan(points: np.ndarray, eps_m: float, min_points: int) -> np.ndarray:
     return lab
 
 
-
 @_jit
 def nearest(X: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distance (N,) m from each point X (N, 3) m to its nearest point of pts (M, 3) m, M > 0, and that point's
@@ -583,8 +586,7 @@ def near_any(points: np.ndarray, ref: np.ndarray, r_m: float) -> np.ndarray:
         x0, x1, x2 = points[i, 0], points[i, 1], points[i, 2]
         if x0 + r_m < lo or x0 - r_m > lo + B * w:
             continue
-        b0 = min(max(int(np.floor((x0 - r_m - lo) / w)), 0), B - 1)
-        b1 = min(max(int(np.floor((x0 + r_m - lo) / w)), 0), B - 1)
+        b0, b1 = _slab_range(x0, r_m, lo, w, B)
         for j in range(start[b0], start[b1 + 1]):
             if _sq_dist(x0, x1, x2, pts, j) < r2:
                 out[i] = True
