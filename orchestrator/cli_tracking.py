@@ -207,7 +207,7 @@ def track_sequence(
     grasp: list[np.ndarray | None] = []
     pending: dict[int, _Pending] = {}  # the frames without keypoints, for the second pass
     statuses: list[str] = []
-    tangles = [0, 0]  # forward-pass frames left with a tangled grid, frames whose tangle was repaired
+    tangles = [0, 0]  # forward-pass frames left with a tangled grid / folded chain, frames repaired
     abs_mm, cd_mm, gt_mm, ms = [], [], [], []
     stages: list[dict[str, float]] = []  # each forward frame's LivePipeline.timings_ms (arm: its prepare)
     topology = None
@@ -227,8 +227,8 @@ def track_sequence(
         stages.append({**out.timings_ms, "total": ms[-1]} if t_arm is None else
                       {**out.timings_ms, "arm": (t_arm - t0) * 1e3, "total": ms[-1]})
         statuses.append(out.status)
-        tangles[0] += out.note.startswith("grid tangled")
-        tangles[1] += out.note == "grid tangle repaired"
+        tangles[0] += out.note.startswith(("grid tangled", "chain folded"))
+        tangles[1] += out.note in ("grid tangle repaired", "chain fold repaired")
         if len(out.keypoints) and topology is None:
             topology = out.topology
         same = topology is not None and len(out.keypoints) == topology.n_keypoints

@@ -7,10 +7,10 @@ import pytest
 
 from tdcommon.meshes import sheet_mesh
 from tracking import synthetic as S
-from tracking.init import initialise
+from tracking.init import Topology, initialise
 from tracking.params import TrackingParams
 from tracking.segmentation import background_from_depths, segment_against_background
-from tracking.tangle import grid_symmetries, relift_grid, tangled_cells
+from tracking.tangle import chain_reversals, grid_symmetries, relift_grid, tangled_cells, unfold_chains
 from tracking.tracker import Tracker
 
 W, H = 640, 480
@@ -94,3 +94,60 @@ def test_tracker_repairs_a_tangled_grid_and_reports_it(cloth_scene) -> None:
     assert res.repaired and res.tangled == 0
     assert not tangled_cells(res.keypoints, R, C).any()
     assert np.linalg.norm(res.keypoints - ok.keypoints, axis=1).max() < 0.02
+
+
+def _chain(n: int = 10, spacing: float = 0.04) -> tuple[np.ndarray, Topology]:
+    """A straight rope chain (n, 3) m along x and its topology (one chain, end to end)."""
+    X = np.stack([np.arange(n) * spacing, np.zeros(n), np.zeros(n)], axis=1)
+    E = np.stack([np.arange(n - 1), np.arange(1, n)], axis=1)
+    topo = Topology("1d", E, np.full(n - 1, spacing), np.array([0, n - 1]), np.zeros(2, np.int64), [np.arange(n)])
+    return X, topo
+
+
+def test_a_bent_chain_does_not_turn_back_and_a_z_fold_does() -> None:
+    X, topo = _chain()
+    t = np.linspace(0.0, np.pi, len(X))  # bent into a half circle: 20 degrees a keypoint
+    bent = np.stack([np.cos(t), np.sin(t), np.zeros_like(t)], axis=1) * 0.12
+    assert len(chain_reversals(X, topo.chains, P.fold_cos)) == 0
+    assert len(chain_reversals(bent, topo.chains, P.fold_cos)) == 0
+    Z = X.copy()
+    Z[[3, 4]] = X[[4, 3]]  # keypoints 3 and 4 in the wrong order along the rope: the chain runs 2 -> 4 -> 3 -> 5
+    assert sorted(chain_reversals(Z, topo.chains, P.fold_cos).tolist()) == [3, 4]
+
+
+def test_unfold_lays_a_folded_chain_out_in_order_along_itself() -> None:
+    X, topo = _chain()
+    Z = X.copy()
+    Z[[3, 4]] = X[[4, 3]]
+    Z[5:] -= [0.02, 0.0, 0.0]  # the fold took up length: the keypoints past it sit closer to the start
+    U = unfold_chains(Z, topo, P.fold_cos, P.fold_span_min)
+    assert U is not None
+    assert np.array_equal(U[[0, -1]], Z[[0, -1]])  # the ends stay
+    assert (np.diff(U[:, 0]) > 0).all() and len(chain_reversals(U, topo.chains, P.fold_cos)) == 0
+    assert np.allclose(np.diff(U[:, 0]), (Z[-1, 0] - Z[0, 0]) / (len(X) - 1))  # even spacing, as the rest lengths
+    assert unfold_chains(X, topo, P.fold_cos, P.fold_span_min) is None  # nothing folded, nothing to do
+    S = X * [0.5, 1.0, 1.0]  # a chain seen over half its length (the rest out of sight), folded at its end
+    S[[7, 8]] = S[[8, 7]]
+    assert unfold_chains(S, topo, P.fold_cos, P.fold_span_min) is None
+
+
+def test_tracker_unfolds_a_folded_rope_and_reports_it() -> None:
+    K, T = S.default_camera(W, H)
+    rng = np.random.default_rng(3)
+    bg = background_from_depths(np.stack([S.rope_scene(0, K, T, (H, W), rng, with_object=False).depth] * 2))
+    fr = S.rope_scene(0, K, T, (H, W), rng)
+    cloud = segment_against_background(fr.depth, bg, K, T, P).points
+    tr = Tracker(P, K, T)
+    tr.initialise(cloud, kind="1d")
+    assert tr.keypoints is not None and tr.topology is not None
+    ok = tr.step(cloud)
+    assert ok.tangled == 0 and not ok.repaired
+    # the fold seen on a test-bed rope: keypoints 2 and 3 the wrong way round along it, the chain past them
+    # stretched to make up the length the fold takes (positions in keypoint spacings along the tracked rope)
+    n = len(ok.keypoints)
+    at = np.concatenate([[0.0, 1.1, 2.1, 1.45], np.linspace(2.4, n - 1, n - 4)])
+    tr.keypoints = np.stack([np.interp(at, np.arange(n), ok.keypoints[:, i]) for i in range(3)], axis=1)
+    res = tr.step(cloud)
+    assert res.repaired and res.tangled == 0
+    assert len(chain_reversals(res.keypoints, tr.topology.chains, P.fold_cos)) == 0
+    assert np.linalg.norm(res.keypoints - ok.keypoints, axis=1).max() < 0.01

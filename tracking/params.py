@@ -99,6 +99,12 @@ class TrackingParams:
         fresh grid's edges add up to the rest lengths within this fraction (the contour outlines the whole
         cloth and nothing else; measured: 0.95-1.03 on twisted test-bed cloths, 0.84-0.93 over a fold in the
         project's simulator, whose hidden lower layer the contour cannot show, up to 1.23 as it closes).
+      fold_cos: a 1D keypoint chain has folded onto itself where the cosine between a keypoint's edge in and
+        edge out is below this (turned back by more than 120 degrees over one keypoint spacing; the test
+        bed's true centrelines sampled at the keypoint spacing stay above +0.5 in every rope clip).
+      fold_span_min: a folded chain is laid out again along itself only when its polyline without the fold
+        spans at least this fraction of the chain's rest length (else the object's missing part is out of
+        sight, e.g. a branch hanging towards the camera, and spacing the chain on what is seen compresses it).
       grasp_gate_m: a TCP farther than this from every keypoint holds nothing, m.
       causal_window, symmetric_window: moving-average windows, frames.
       min_object_points: fewer segmented points than this is a bad frame.
@@ -177,6 +183,8 @@ class TrackingParams:
     anchor_neighbour_slack_m: float = 0.02
     anchor_stiffness: float = 0.2
     relift_span_tol: float = 0.06
+    fold_cos: float = -0.5
+    fold_span_min: float = 0.8
     grasp_gate_m: float = 0.05
     causal_window: int = 3
     symmetric_window: int = 5

@@ -457,10 +457,12 @@ class LivePipeline:
 
     def _output(self, status: str, res: FrameResult, cloud: np.ndarray) -> PipelineOutput:
         note = ""
+        grid = self.tracker.topology is None or self.tracker.topology.kind == "2d"
         if res.tangled:
-            note = f"grid tangled: {res.tangled} cells" + (" after a repair" if res.repaired else "")
+            note = (f"grid tangled: {res.tangled} cells" if grid else f"chain folded: {res.tangled} keypoints") + (
+                " after a repair" if res.repaired else "")
         elif res.repaired:
-            note = "grid tangle repaired"
+            note = "grid tangle repaired" if grid else "chain fold repaired"
         return PipelineOutput(
             status, res.keypoints, res.smoothed, np.asarray(res.grasp_idx, np.int64),
             float(res.edge_rmse_mm), float(res.chamfer_mm), int(res.n_points), self.tracker.topology, cloud, note,

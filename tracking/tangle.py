@@ -1,11 +1,17 @@
 """A cloth grid's tangles: detection (cells folded over themselves) and repair (a grid re-lifted from the
-frame's contour in the track's own correspondence).
+frame's contour in the track's own correspondence); a 1D chain's folds: detection (the chain turns back on
+itself at a keypoint) and repair (the chain laid out again along itself without the fold).
 
 A tracked grid tangles when the solver folds a cell over itself, a corner pulled across the opposite edge (a
 bow-tie): plain in a picture, hidden in the mean edge error. A real cloth's 6x6 grid seldom has one (the
 test bed's true surface sampled 6x6: in 4 of 180 frames of a crumpled cloth, none in four other clips; the
 project's simulator: in 6 of 180 frames, as its fold closes). Two neighbouring cells facing apart are not a
 tangle: those of a real fold face up to ~165 degrees apart.
+
+A rope's keypoint chain folds when a fast move or a part hidden under a hand puts two keypoints the wrong way
+round along the rope: each still lies on it, so the solver keeps the zig-zag, and the rest of the chain is
+stretched to make up the length the fold takes. A true centreline sampled at the keypoint spacing turns by at
+most ~57 degrees at a keypoint over the test bed's rope clips; a folded chain turns back by ~180.
 """
 
 from __future__ import annotations
@@ -88,4 +94,49 @@ def relift_grid(
     return X
 
 
-__all__ = ["cell_corner_normals", "grid_symmetries", "relift_grid", "tangled_cells"]
+def chain_reversals(X: np.ndarray, chains: list[np.ndarray], cos_max: float) -> np.ndarray:
+    """Interior keypoints (K,) int64 of the chains where a chain turns back on itself: the cosine between the
+    edge in and the edge out is below cos_max. X: (N, 3) m; chains: keypoint index arrays, end to end."""
+    out = []
+    for c in chains:
+        if len(c) < 3:
+            continue
+        d = np.diff(X[c], axis=0)
+        n = np.maximum(np.linalg.norm(d, axis=1), 1e-12)
+        cos = np.einsum("ij,ij->i", d[:-1], d[1:]) / (n[:-1] * n[1:])
+        out.append(c[1:-1][cos < cos_max])
+    return np.concatenate(out) if out else np.zeros(0, np.int64)
+
+
+def unfold_chains(X: np.ndarray, topology: Topology, cos_max: float, min_span: float) -> np.ndarray | None:
+    """Keypoints X (N, 3) m with every chain that turns back on itself (``chain_reversals``) laid out again
+    along itself with the fold taken out: the turned-back keypoints dropped from the chain's polyline (until it
+    has none), the chain's keypoints spaced on what is left in proportion to their rest lengths, its ends kept.
+    A warm start for the solver, which a fold holds in a local minimum: its keypoints lie on the object, in the
+    wrong order, and the rest of the chain is stretched to make up the length the fold takes. None: no fold."""
+    rest = {(int(min(e)), int(max(e))): float(r) for e, r in zip(topology.edges, topology.rest, strict=True)}
+    out, changed = X.copy(), False
+    for c in topology.chains:
+        if len(c) < 3:
+            continue
+        keep = np.ones(len(c), bool)
+        while True:
+            k = np.flatnonzero(keep)
+            bad = chain_reversals(X, [c[k]], cos_max)
+            if len(bad) == 0:
+                break
+            keep[np.isin(c, bad)] = False
+        if keep.all():
+            continue
+        P = X[c[keep]]
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+        r = np.array([rest[int(min(a, b)), int(max(a, b))] for a, b in zip(c[:-1], c[1:], strict=True)])
+        if s[-1] < min_span * r.sum():
+            continue
+        changed = True
+        f = np.concatenate([[0.0], np.cumsum(r)]) / max(r.sum(), 1e-12)
+        out[c] = np.stack([np.interp(f * s[-1], s, P[:, i]) for i in range(3)], axis=1)
+    return out if changed else None
+
+
+__all__ = ["cell_corner_normals", "chain_reversals", "grid_symmetries", "relift_grid", "tangled_cells", "unfold_chains"]

@@ -21,7 +21,7 @@ from tracking.metrics import chamfer_mm, edge_rmse_mm
 from tracking.params import TrackingParams
 from tracking.skeleton import LEAF
 from tracking.solver import solve_keypoints
-from tracking.tangle import relift_grid, tangled_cells
+from tracking.tangle import chain_reversals, relift_grid, tangled_cells, unfold_chains
 
 
 class TrackStatus(str, Enum):
@@ -41,8 +41,9 @@ class FrameResult:
     status: TrackStatus (keypoints are only trustworthy when OK); edge_rmse_mm, chamfer_mm: Abs and CD;
     n_points: segmented points; anchors_matched / anchors_total: re-detected anchors used;
     grasp_idx: (G,) int64 keypoint held by each gripper, -1 = none.
-    tangled: a grid's tangled cells left in this solution (``tracking.tangle``; such a frame is bad);
-    repaired: the grid had tangled and was re-lifted from the frame's contour.
+    tangled: a grid's tangled cells, or a 1D object's keypoints where a chain turns back on itself (a fold),
+    left in this solution (``tracking.tangle``; such a frame is bad);
+    repaired: the grid had tangled and was re-lifted from the frame's contour, or a fold was laid out again.
     """
 
     keypoints: np.ndarray
@@ -360,6 +361,8 @@ class Tracker:
         tangled, repaired = 0, False
         if self.topology.grid_shape is not None:
             X, matched, tangled, repaired = self._untangle(X, matched, cloud, det, kinds, tcp, held)
+        elif self.topology.kind == "1d":
+            X, matched, tangled, repaired = self._unfold(X, matched, cloud, det, kinds, tcp)
         res = self._result(X, cloud, matched, na, tangled=tangled, repaired=repaired)
         self.last_timings_ms = {"anchors": 1e3 * (t1 - t0), "solve": 1e3 * (time.perf_counter() - t1)}
         return res
@@ -382,6 +385,28 @@ class Tracker:
         X2, m2 = track_frame(X0, self.topology, cloud, det, kinds, self.params, tcp, self.grasp_idx, X0)
         bad2 = int(tangled_cells(X2, rows, cols).sum())
         if bad2 < bad:
+            return X2, m2, bad2, True
+        return X, matched, bad, False
+
+    def _unfold(
+        self, X: np.ndarray, matched: int, cloud: np.ndarray, det: np.ndarray, kinds: np.ndarray,
+        tcp: np.ndarray | None,
+    ) -> tuple[np.ndarray, int, int, bool]:
+        """A 1D solution X (N, 3) m checked for chains folded onto themselves; a folded one is solved again from
+        its chains laid out without the fold (``unfold_chains``), kept when fewer keypoints turn back and its
+        edge error is no larger. Returns (X, anchors matched, keypoints turned back left, repaired)."""
+        assert self.topology is not None
+        cos_max = self.params.fold_cos
+        bad = len(chain_reversals(X, self.topology.chains, cos_max))
+        if bad == 0:
+            return X, matched, 0, False
+        X0 = unfold_chains(X, self.topology, cos_max, self.params.fold_span_min)
+        if X0 is None:
+            return X, matched, bad, False
+        X2, m2 = track_frame(X0, self.topology, cloud, det, kinds, self.params, tcp, self.grasp_idx, X0)
+        bad2 = len(chain_reversals(X2, self.topology.chains, cos_max))
+        edges, rest = self.topology.edges, self.topology.rest
+        if bad2 < bad and edge_rmse_mm(X2, edges, rest) <= edge_rmse_mm(X, edges, rest):
             return X2, m2, bad2, True
         return X, matched, bad, False
 
