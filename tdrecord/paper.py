@@ -7,6 +7,7 @@ Millimetres appear only in these files, as the paper's code expects them; what i
 from __future__ import annotations
 
 import math
+import struct
 import zipfile
 import zlib
 from collections.abc import Collection, Iterable, Iterator
@@ -53,6 +54,88 @@ def _read_npy_header(fp: IO[bytes], where: str) -> tuple[tuple[int, ...], bool, 
         raise DatasetError(f"{where}: not a .npy array ({e})") from e
 
 
+class _Member:
+    """A stored or deflated zip member read as a stream, inflated with zlib-ng (~2x zlib's speed on a test-bed
+    depth array, the same bytes), one block in memory at a time; ``read()`` to its end compares the
+    member's CRC-32 and raises ``zipfile.BadZipFile`` on a mismatch, ``zlib.error`` on data that does not
+    inflate and ``EOFError`` on a file cut short, as ``zipfile``'s own stream does."""
+
+    _BLOCK = 1 << 22
+
+    def __init__(self, path: Path, info: zipfile.ZipInfo) -> None:
+        from zlib_ng import zlib_ng
+
+        self._zlib = zlib_ng
+        self._info = info
+        self._f = open(path, "rb")  # noqa: SIM115 - closed by close() / the context manager
+        self._f.seek(info.header_offset)
+        head = self._f.read(30)
+        if len(head) != 30 or head[:4] != b"PK\x03\x04":
+            self._f.close()
+            raise zipfile.BadZipFile(f"bad local file header for {info.filename!r}")
+        name_len, extra_len = struct.unpack("<HH", head[26:30])
+        self._f.seek(info.header_offset + 30 + name_len + extra_len)
+        self._left = info.compress_size
+        self._inflate = zlib_ng.decompressobj(-15) if info.compress_type == zipfile.ZIP_DEFLATED else None
+        self._crc = 0
+        self._chunk, self._pos = b"", 0
+        self._done = False
+
+    def _more(self) -> bool:
+        """Inflate the next block; False at the member's end (its CRC checked there)."""
+        if self._done:
+            return False
+        raw = self._f.read(min(self._BLOCK, self._left)) if self._left > 0 else b""
+        if self._left > 0 and not raw:
+            raise EOFError(f"{self._info.filename!r} ends {self._left} bytes early")
+        self._left -= len(raw)
+        try:
+            out = raw if self._inflate is None else self._inflate.decompress(raw)
+            if self._left == 0 and self._inflate is not None:
+                out += self._inflate.flush()
+        except self._zlib.error as e:
+            raise zlib.error(str(e)) from None
+        self._crc = self._zlib.crc32(out, self._crc)
+        self._chunk, self._pos = out, 0
+        if self._left == 0:
+            self._done = True
+            if self._crc != self._info.CRC:
+                raise zipfile.BadZipFile(f"Bad CRC-32 for file {self._info.filename!r}")
+        return True
+
+    def read(self, n: int = -1) -> bytes:
+        """Up to n bytes (all that is left when n < 0); fewer only at the member's end."""
+        parts = []
+        need = n if n >= 0 else math.inf
+        while need > 0:
+            if self._pos == len(self._chunk) and not self._more():
+                break
+            take = self._chunk[self._pos : self._pos + need] if need < math.inf else self._chunk[self._pos :]
+            self._pos += len(take)
+            need -= len(take)
+            parts.append(take)
+        return parts[0] if len(parts) == 1 else b"".join(parts)
+
+    def close(self) -> None:
+        """Close the file."""
+        self._f.close()
+
+    def __enter__(self) -> _Member:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _open_member(zf: zipfile.ZipFile, path: Path, name: str) -> IO[bytes] | _Member:
+    """Member ``name`` of the open archive zf (of file path) as a stream: ``_Member`` when stored or deflated and
+    not encrypted, else zipfile's own."""
+    info = zf.getinfo(name)
+    if info.compress_type in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED) and not info.flag_bits & 0x1:
+        return _Member(path, info)
+    return zf.open(info)
+
+
 def verify_npz(path: Path, skip: Collection[str] = (), structure_only: bool = False) -> None:
     """Check an .npz before use: a zip archive whose every member (but those named in ``skip``, e.g.
     ``"depth.npy"``) passes its CRC check; ``structure_only``: only that it opens as a zip (its central
@@ -69,7 +152,7 @@ def verify_npz(path: Path, skip: Collection[str] = (), structure_only: bool = Fa
                 if info.filename in skip:
                     continue
                 try:
-                    with zf.open(info) as fp:
+                    with _open_member(zf, path, info.filename) as fp:
                         while fp.read(1 << 22):
                             pass
                 except (zipfile.BadZipFile, zlib.error) as e:
@@ -105,7 +188,7 @@ def _iter_npz_rows(path: Path, key: str, start: int = 0) -> Iterator[np.ndarray]
     raises DatasetError naming the file and member.
     """
     try:
-        with zipfile.ZipFile(path) as zf, zf.open(f"{key}.npy") as fp:
+        with zipfile.ZipFile(path) as zf, _open_member(zf, path, f"{key}.npy") as fp:
             shape, fortran, dtype = _read_npy_header(fp, f"{path}:{key}")
             if fortran:  # rare: no row streaming possible
                 with np.load(path) as z:

@@ -7,6 +7,7 @@ import json
 import logging
 import os
 import threading
+import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -23,6 +24,7 @@ from tdrecord import (
     DatasetError,
     FrameSource,
     nearest_index,
+    paper,
     read_calibration,
     read_episodes,
     read_paper_layout,
@@ -261,7 +263,8 @@ def test_paper_layout_depth_only_stream_matches_frames(tmp_path: Path, compress:
     assert [d.frame_number for d in iter_depth(frames)] == list(range(5))  # a list: the frames themselves
 
 
-def test_paper_layout_depth_stream_checks_its_crc(tmp_path: Path) -> None:
+def test_paper_layout_depth_stream_checks_its_crc(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(paper._Member, "_BLOCK", 1 << 12)  # blocks smaller than this test's small array
     folder, frames, _ = _paper(tmp_path)  # stored: a flipped byte decodes, only the CRC notices
     rgbd = folder / "rgbd.npz"
     data = bytearray(rgbd.read_bytes())
@@ -443,3 +446,32 @@ def test_background_threads_lower_only_their_own_priority() -> None:
     t.start()
     t.join()
     assert seen in ([3], [19 - main_before]) and nice() == main_before
+
+
+@pytest.mark.parametrize("compressed", [True, False])
+def test_npz_member_stream_gives_zipfiles_bytes_and_checks_the_crc(
+    tmp_path: Path, compressed: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(paper._Member, "_BLOCK", 1 << 10)  # many blocks, rows across their borders
+    rng = np.random.default_rng(0)
+    arrays = {"depth": rng.integers(0, 900, (7, 33, 41)).astype(np.uint16), "color": rng.random((3, 5, 6))}
+    path = tmp_path / "a.npz"
+    (np.savez_compressed if compressed else np.savez)(path, **arrays)
+    with zipfile.ZipFile(path) as zf:
+        for name in zf.namelist():
+            with zf.open(name) as ref, paper._open_member(zf, path, name) as ours:
+                assert ours.read(100) + ours.read(5000) + ours.read() == ref.read()
+    rows = list(paper._iter_npz_rows(path, "depth", start=2))
+    assert np.array_equal(np.stack(rows), arrays["depth"][2:])
+    data = bytearray(path.read_bytes())
+    with zipfile.ZipFile(path) as zf:
+        info = zf.getinfo("depth.npy")
+    data[info.header_offset + 30 + len("depth.npy") + 200] ^= 0x55  # inside the depth member's data
+    path.write_bytes(bytes(data))
+    with pytest.raises(DatasetError, match=r"a\.npz: corrupt \.npz: member 'depth\.npy'"):
+        list(paper._iter_npz_rows(path, "depth"))
+    with pytest.raises(DatasetError, match="'depth.npy' fails its CRC check"):
+        paper.verify_npz(path)
+    path.write_bytes(bytes(data[: len(data) // 2]))
+    with pytest.raises(DatasetError):
+        list(paper._iter_npz_rows(path, "depth"))
