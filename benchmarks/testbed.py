@@ -91,6 +91,11 @@ VARIANTS: list[dict[str, Any]] = [
     dict(name="cloth_medium_obl2", obj="cloth", speed="medium", seconds=5, seed=56, camera=OBLIQUE_RIGHT),
     dict(name="rope_fast_samecolor", obj="rope", speed="fast", seconds=5, seed=57, samecolor=True, length=0.85,
          radius=0.006),
+    dict(name="rope_above_fast_s61", obj="rope", speed="fast", seconds=5, seed=61, camera=ABOVE, length=0.9,
+         radius=0.005, rgb=[0.2, 0.2, 0.8]),
+    dict(name="rope_medium_obl2_s62", obj="rope", speed="medium", seconds=5, seed=62, camera=OBLIQUE_RIGHT,
+         length=0.85, radius=0.007, rgb=[0.9, 0.5, 0.1]),
+    dict(name="rope_side_slow_s64", obj="rope", speed="slow", seconds=5, seed=64, camera=SIDE, radius=0.0055),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
