@@ -36,10 +36,10 @@ from typing import Any, Literal
 import numpy as np
 import zstandard
 
-try:  # zlib-ng: same API and output format as zlib, about twice as fast for the same size
-    from zlib_ng import zlib_ng as _deflate
+try:  # zlib-ng: same API and output format as zlib, about twice as fast for the same size (and to inflate)
+    from zlib_ng import zlib_ng as ZLIB
 except ImportError:  # pragma: no cover - a plain zlib gives the same files, only slower
-    _deflate = zlib  # type: ignore[assignment]
+    ZLIB = zlib  # type: ignore[assignment]
 
 ColorCodec = Literal["h264", "jpeg", "raw"]
 DepthCodec = Literal["png", "planes", "raw"]
@@ -93,7 +93,7 @@ def encode_png16(depth: np.ndarray, level: int = 1) -> bytes:
     rows[:, 0] = _PNG_FILTER_SUB
     rows[:, 1:3] = b[:, :2]
     np.subtract(b[:, 2:], b[:, :-2], out=rows[:, 3:])  # uint8 arithmetic wraps mod 256, as PNG's Sub filter
-    comp = _deflate.compressobj(level, _deflate.DEFLATED, 15, 9, _deflate.Z_HUFFMAN_ONLY)
+    comp = ZLIB.compressobj(level, ZLIB.DEFLATED, 15, 9, ZLIB.Z_HUFFMAN_ONLY)
     idat = comp.compress(rows) + comp.flush()
     ihdr = struct.pack(">IIBBBBB", w, h, 16, 0, 0, 0, 0)  # 16-bit greyscale, deflate, adaptive filters, no interlace
     return _PNG_SIGNATURE + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", idat) + _png_chunk(b"IEND", b"")

@@ -18,6 +18,7 @@ import numpy as np
 
 from tdcommon.transforms import invert_transform, matrix_to_pose7, pose7_to_matrix
 from tdcommon.types import CameraIntrinsics, RGBDFrame
+from tdrecord.codecs import ZLIB
 from tdrecord.sequence import (
     DEPTH_SCALE_MM,
     DatasetError,
@@ -55,17 +56,14 @@ def _read_npy_header(fp: IO[bytes], where: str) -> tuple[tuple[int, ...], bool, 
 
 
 class _Member:
-    """A stored or deflated zip member read as a stream, inflated with zlib-ng (~2x zlib's speed on a test-bed
-    depth array, the same bytes), one block in memory at a time; ``read()`` to its end compares the
-    member's CRC-32 and raises ``zipfile.BadZipFile`` on a mismatch, ``zlib.error`` on data that does not
-    inflate and ``EOFError`` on a file cut short, as ``zipfile``'s own stream does."""
+    """A stored or deflated zip member read as a stream, inflated with zlib-ng (``tdrecord.codecs.ZLIB``: ~2x
+    zlib's speed on a test-bed depth array, the same bytes), one block in memory at a time; ``read()`` to its end
+    compares the member's CRC-32 and raises ``zipfile.BadZipFile`` on a mismatch, ``zlib.error`` on data that does
+    not inflate and ``EOFError`` on a file cut short, as ``zipfile``'s own stream does."""
 
     _BLOCK = 1 << 22
 
     def __init__(self, path: Path, info: zipfile.ZipInfo) -> None:
-        from zlib_ng import zlib_ng
-
-        self._zlib = zlib_ng
         self._info = info
         self._f = open(path, "rb")  # noqa: SIM115 - closed by close() / the context manager
         self._f.seek(info.header_offset)
@@ -76,7 +74,7 @@ class _Member:
         name_len, extra_len = struct.unpack("<HH", head[26:30])
         self._f.seek(info.header_offset + 30 + name_len + extra_len)
         self._left = info.compress_size
-        self._inflate = zlib_ng.decompressobj(-15) if info.compress_type == zipfile.ZIP_DEFLATED else None
+        self._inflate = ZLIB.decompressobj(-15) if info.compress_type == zipfile.ZIP_DEFLATED else None
         self._crc = 0
         self._chunk, self._pos = b"", 0
         self._done = False
@@ -93,9 +91,9 @@ class _Member:
             out = raw if self._inflate is None else self._inflate.decompress(raw)
             if self._left == 0 and self._inflate is not None:
                 out += self._inflate.flush()
-        except self._zlib.error as e:
+        except ZLIB.error as e:
             raise zlib.error(str(e)) from None
-        self._crc = self._zlib.crc32(out, self._crc)
+        self._crc = ZLIB.crc32(out, self._crc)
         self._chunk, self._pos = out, 0
         if self._left == 0:
             self._done = True
