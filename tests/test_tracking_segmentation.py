@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 from tdcommon.meshes import box_mesh, tube_mesh
 from tdcommon.transforms import look_at
 from tracking import synthetic as S
-from tracking.geometry import depth_to_points, project_points
+from tracking.geometry import depth_to_points, gaps_hidden, project_points
 from tracking.params import TrackingParams
 from tracking.segmentation import (
     background_from_depths,
@@ -537,3 +537,16 @@ def test_tracking_keeps_the_sparse_points_of_a_steep_tube_on_the_object():
     # nor on the table: a plane through the top of the steep part leaves it out
     table = (np.array([0.0, 0.0, 1.0]), 0.3)
     assert len(select_clusters_near(pts, lab, object_now, P, table)) == 400
+
+
+def test_gaps_hidden_only_when_the_mask_covers_the_way_beyond_the_start() -> None:
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    T = np.eye(4)  # camera at the origin looking along +z: (x, y, 1 m) is seen at pixel (320 + 500 x, 240 + 500 y)
+    mask = np.zeros((480, 640), bool)
+    mask[230:250, 340:] = True  # a "hand" over x > 4 cm on the row y = 0
+    a = np.tile([0.0, 0.0, 1.0], (4, 1))
+    b = a + [[0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]
+    got = gaps_hidden(a, b, mask, K, T, skip_m=0.045)
+    # hidden beyond its first 4.5 cm / in plain sight / no gap / hidden, then out of the image
+    assert got.tolist() == [True, False, False, True]
+    assert not gaps_hidden(a[:1], b[:1], mask, K, T, skip_m=0.02)[0]  # its first 4 cm are in sight

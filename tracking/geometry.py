@@ -62,6 +62,28 @@ def project_points(points: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -
     return np.stack([u, v], axis=1), z
 
 
+def gaps_hidden(
+    a: np.ndarray, b: np.ndarray, mask: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, skip_m: float,
+    samples: int = 16,
+) -> np.ndarray:
+    """(G,) bool: whether each straight gap from a (G, 3) m to b (G, 3) m, world frame, is out of sight behind
+    mask (h, w) bool (e.g. the arm's pixels of a camera with matrix K (3, 3) at T_world_cam (4, 4)): every one of
+    ``samples`` points along it farther than skip_m from a lies on a masked pixel or outside the image."""
+    a = np.asarray(a, np.float64).reshape(-1, 3)
+    b = np.asarray(b, np.float64).reshape(-1, 3)
+    t = np.linspace(0.0, 1.0, samples)
+    P = a[:, None, :] + t[None, :, None] * (b - a)[:, None, :]  # (G, S, 3)
+    far = np.linalg.norm(P - a[:, None, :], axis=2) > skip_m
+    uv, z = project_points(P.reshape(-1, 3), K, T_world_cam)
+    h, w = mask.shape
+    c = np.floor(uv[:, 0]).astype(np.int64)
+    r = np.floor(uv[:, 1]).astype(np.int64)
+    inside = (z > 0) & (c >= 0) & (c < w) & (r >= 0) & (r < h)
+    hid = ~inside
+    hid[inside] = mask[r[inside], c[inside]]
+    return (hid.reshape(far.shape) | ~far).all(axis=1) & far.any(axis=1)
+
+
 def decimation_stride(K: np.ndarray, pixel_m: float) -> int:
     """Stride s >= 1 (px) so that every s-th pixel of a camera with matrix K (3, 3) spans about
     ``pixel_m`` metres at 1 m depth (s = round(fx * pixel_m)); 1 when pixel_m <= 0."""

@@ -106,6 +106,9 @@ class TrackingParams:
         spans at least this fraction of the chain's rest length (else the object's missing part is out of
         sight, e.g. a branch hanging towards the camera, and spacing the chain on what is seen compresses it).
       grasp_gate_m: a TCP farther than this from every keypoint holds nothing, m.
+      hand_hidden_m: a 1D object's initial growth towards a gripper that stops short of its TCP is kept when
+        it stops within this of the TCP and the rest of the way is hidden behind the arm in the image (a hand,
+        whose fingers and body span about this much around its TCP, hides the end it holds), m.
       causal_window, symmetric_window: moving-average windows, frames.
       min_object_points: fewer segmented points than this is a bad frame.
       max_edge_rmse_m, max_chamfer_m: a frame with Abs or CD above these is bad, m.
@@ -186,6 +189,7 @@ class TrackingParams:
     fold_cos: float = -0.5
     fold_span_min: float = 0.8
     grasp_gate_m: float = 0.05
+    hand_hidden_m: float = 0.12
     causal_window: int = 3
     symmetric_window: int = 5
     min_object_points: int = 30

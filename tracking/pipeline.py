@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 
 from tdcommon.meshes import OutwardCache
 from tracking.classify import classify_object
-from tracking.geometry import decimated_intrinsics, decimation_stride, edge_samples
+from tracking.geometry import decimated_intrinsics, decimation_stride, edge_samples, gaps_hidden
 from tracking.init import InitialisationError, Topology
 from tracking.params import TrackingParams
 from tracking.segmentation import (
@@ -273,7 +273,9 @@ class LivePipeline:
         parts above the table (``grow_attached_tubes``, ``attach_reach_m`` a step, up to ``attach_iterations``
         steps) while a holding gripper's TCP (held (G, 3) m) is farther than ``grasp_gate_m`` from it: in a
         slow start only the middle of a rope moves, and its still ends hang up to the grippers. Kept only when
-        it reaches a gripper the segmentation did not. When every gripper is reached already it is grown until
+        it reaches a gripper the segmentation did not, or comes closer to one and stops within ``hand_hidden_m``
+        of its TCP where the arm (arm: decimated mask) hides the rest of the way (``gaps_hidden``: the hand
+        hides the end it holds). When every gripper is reached already it is grown until
         it stalls (nothing within ``grasp_gate_m`` of a TCP), a part of a pixel or more at a time: a still free end,
         e.g. a branch's tip on the table or hanging away from the camera."""
         p = self.seg_params
@@ -304,9 +306,19 @@ class LivePipeline:
             out = replace(out, points=np.concatenate([out.points, new]))
             if (cKDTree(out.points).query(held)[0] <= p.grasp_gate_m).all():
                 break
-        # a growth that stalls before reaching another gripper found something else (a surface patch, a gap)
-        now = cKDTree(out.points).query(held)[0] <= p.grasp_gate_m
-        return out if now.sum() > reached.sum() else seg
+        # a growth that stalls before reaching another gripper found something else (a surface patch, a gap),
+        # unless it stops where that gripper's hand hides the rest of the way to its TCP
+        d, i = cKDTree(out.points).query(held)
+        now = d <= p.grasp_gate_m
+        if now.sum() > reached.sum():
+            return out
+        if arm is not None and len(out.points) > len(seg.points):
+            d0 = cKDTree(seg.points).query(held)[0]
+            behind = ~reached & (d < d0) & (d <= p.hand_hidden_m)
+            if behind.any() and gaps_hidden(out.points[i[behind]], held[behind], arm, self.K_seg, self.T,
+                                             p.voxel_m).any():
+                return out
+        return seg
 
     def initial_cloud(
         self, refs: np.ndarray, depth: np.ndarray, seg: Segmentation, arm: np.ndarray | None,
