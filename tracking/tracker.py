@@ -438,7 +438,8 @@ class Tracker:
 
         A frame is bad without a cloud, when the keypoints jumped (solution discarded) or when Abs or
         CD exceed their thresholds (solution kept as the next warm start, flagged DEGRADED). A grid left
-        tangled (``tangled`` cells) is kept as the warm start too and flagged DEGRADED, but does not count
+        tangled or a chain left folded (``tangled`` cells / keypoints) is kept as the warm start too and flagged
+        DEGRADED, but does not count
         towards a loss: the next frame tries the repair again, in the track's own topology, which a
         re-initialisation would replace (new rest lengths, keypoints renumbered).
         """
