@@ -227,8 +227,8 @@ def track_sequence(
         stages.append({**out.timings_ms, "total": ms[-1]} if t_arm is None else
                       {**out.timings_ms, "arm": (t_arm - t0) * 1e3, "total": ms[-1]})
         statuses.append(out.status)
-        tangles[0] += out.note.startswith(("grid tangled", "chain folded"))
-        tangles[1] += out.note in ("grid tangle repaired", "chain fold repaired")
+        tangles[0] += out.tangled > 0
+        tangles[1] += out.repaired and not out.tangled
         if len(out.keypoints) and topology is None:
             topology = out.topology
         same = topology is not None and len(out.keypoints) == topology.n_keypoints
@@ -272,8 +272,7 @@ def track_sequence(
         metrics["fill_ms_per_frame_median"] = float(np.median(filled.ms))
     metrics["stage_ms_median"] = {"forward": stage_medians(stages), "fill": stage_medians(filled.stages)}
     metrics["statuses"] = {s: statuses.count(s) for s in sorted(set(statuses))}
-    if topology.grid_shape is not None:
-        metrics["tangled_frames"], metrics["repaired_frames"] = tangles
+    metrics["tangled_frames"], metrics["repaired_frames"] = tangles  # a grid's tangles, a chain's folds
     if gt_mm:
         metrics["gt_rmse_mm"] = float(np.sqrt(np.mean(np.square(gt_mm))))
     return {"raw": full, "grasp": grasp, "topology": topology, "metrics": metrics}

@@ -113,6 +113,8 @@ def test_offline_track_writes_reference_npz(demo_10s_track: tuple[Path, dict]) -
     """``trackdeform track`` of a 10 s simulated-time rope session (640x480, recorded without live tracking)."""
     out, metrics = demo_10s_track
     assert metrics["tracked_frames"] > 200 and metrics["CD"] < 10.0 and metrics["gt_rmse_mm"] < 5.0
+    # a rope's chain folds are reported as a grid's tangles are: frames left folded, frames repaired
+    assert isinstance(metrics["tangled_frames"], int) and 0 <= metrics["repaired_frames"] <= metrics["tracked_frames"]
     ref = np.load(out / "3d_keypoints.npz")
     assert ref["full"].shape == (300, 20, 3) and ref["edge_connection"].shape == (19, 2)
     assert 5.0 < np.nanmedian(ref["reference_lengths"]) < 60.0  # millimetres

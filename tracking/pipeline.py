@@ -52,7 +52,8 @@ class PipelineOutput:
     (differencing or background segmentation + DBSCAN), "init" (classification, anchors, warm start,
     solve) on an initialisation frame, "anchors" (re-detection) and "solve" (Algorithm 1 + scoring)
     on a tracked frame, "total" (the whole ``process`` call). prepared: the frame's decimated depth and
-    arm mask (``PreparedFrame``), for a caller that processes the frame again.
+    arm mask (``PreparedFrame``), for a caller that processes the frame again. tangled / repaired: the
+    tracker's (``FrameResult``): a grid's tangled cells or a chain's folded keypoints left, a repair made.
     """
 
     status: str
@@ -67,6 +68,8 @@ class PipelineOutput:
     note: str = ""
     timings_ms: dict[str, float] = field(default_factory=dict, repr=False)
     prepared: PreparedFrame | None = field(default=None, repr=False, compare=False)
+    tangled: int = 0
+    repaired: bool = False
 
 
 _EMPTY = np.zeros((0, 3))
@@ -282,7 +285,8 @@ class LivePipeline:
         if held is None or len(held) == 0 or len(seg.points) == 0 or self.kind == "2d" or seg.grown:
             return seg
         held = np.asarray(held, np.float64).reshape(-1, 3)
-        reached = cKDTree(seg.points).query(held)[0] <= p.grasp_gate_m
+        d0 = cKDTree(seg.points).query(held)[0]
+        reached = d0 <= p.grasp_gate_m
         if reached.all():  # the still free parts (a branch's tip lying on the table) are grown to their ends
             out = seg
             for _ in range(p.attach_iterations):
@@ -313,7 +317,6 @@ class LivePipeline:
         if now.sum() > reached.sum():
             return out
         if arm is not None and len(out.points) > len(seg.points):
-            d0 = cKDTree(seg.points).query(held)[0]
             behind = ~reached & (d < d0) & (d <= p.hand_hidden_m)
             if behind.any() and gaps_hidden(out.points[i[behind]], held[behind], arm, self.K_seg, self.T,
                                              p.voxel_m).any():
@@ -478,4 +481,5 @@ class LivePipeline:
         return PipelineOutput(
             status, res.keypoints, res.smoothed, np.asarray(res.grasp_idx, np.int64),
             float(res.edge_rmse_mm), float(res.chamfer_mm), int(res.n_points), self.tracker.topology, cloud, note,
+            tangled=int(res.tangled), repaired=bool(res.repaired),
         )
