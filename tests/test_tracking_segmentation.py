@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 from tdcommon.meshes import box_mesh, tube_mesh
 from tdcommon.transforms import look_at
 from tracking import synthetic as S
-from tracking.geometry import depth_to_points, gaps_hidden, project_points
+from tracking.geometry import depth_to_points, gaps_hidden, hidden_behind, project_points
 from tracking.params import TrackingParams
 from tracking.segmentation import (
     background_from_depths,
@@ -550,3 +550,22 @@ def test_gaps_hidden_only_when_the_mask_covers_the_way_beyond_the_start() -> Non
     # hidden beyond its first 4.5 cm / in plain sight / no gap / hidden, then out of the image
     assert got.tolist() == [True, False, False, True]
     assert not gaps_hidden(a[:1], b[:1], mask, K, T, skip_m=0.02)[0]  # its first 4 cm are in sight
+
+
+def test_hidden_behind_the_mask_unless_well_in_front_of_it() -> None:
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    T = np.eye(4)  # camera at the origin looking along +z
+    mask = np.zeros((480, 640), bool)
+    mask[:, 320:] = True  # the arm over the right half, seen at 1 m
+    depth = np.ones((480, 640))
+    depth[:, 600:] = 0.0  # no reading there
+    pts = np.array([
+        [-0.1, 0.0, 1.1],  # left of the mask: seen
+        [0.1, 0.0, 1.1],  # behind the arm
+        [0.1, 0.0, 0.99],  # touching it (between fingers): no cloud of its own either
+        [0.1, 0.0, 0.8],  # a rope passing well in front of the arm: seen
+        [0.59, 0.0, 1.0],  # masked pixel without a depth reading
+        [5.0, 0.0, 1.0],  # out of the image
+    ])
+    got = hidden_behind(pts, mask, depth, K, T, margin_m=0.02)
+    assert got.tolist() == [False, True, True, False, True, False]

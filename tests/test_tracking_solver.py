@@ -114,3 +114,27 @@ def test_soft_anchor_pulls_part_way_and_keeps_edge_lengths_better() -> None:
     assert np.allclose(hard[[0, 4]], pos) and np.allclose(soft[0], pos[0])
     assert 0.4 < soft[4, 0] < 0.43
     assert edge_rmse_mm(soft, edges, rest) < 0.5 * edge_rmse_mm(hard, edges, rest)
+
+
+def test_hidden_keypoint_is_projected_onto_the_cloud_only_beside_it() -> None:
+    # a chain held at x = 0 whose first keypoints are hidden: the cloud is the seen part of the rope, x >= 0.1 m
+    N = 11
+    rest = np.full(N - 1, 0.02)
+    edges = np.stack([np.arange(N - 1), np.arange(1, N)], axis=1)
+    X0 = np.stack([0.02 * np.arange(N), np.zeros(N), np.zeros(N)], axis=1)
+    xs = np.linspace(0.1, 0.2, 200)
+    cloud = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)
+    hidden = X0[:, 0] < 0.1
+    anchors = np.array([0, N - 1])
+    free = solve_keypoints(X0, edges, rest, anchors, X0[anchors], cloud, 30, P)
+    kept = solve_keypoints(X0, edges, rest, anchors, X0[anchors], cloud, 30, P, hidden=hidden)
+    # without the flag the hidden keypoints are pulled onto the seen rope and the edge to the held end stretches
+    assert free[1, 0] > 0.05 and edge_rmse_mm(free, edges, rest) > 10.0
+    # with it they stay where the edges put them (the nearest cloud point is 2 cm or more away: beyond reach)
+    assert 0.1 - X0[4, 0] > P.hidden_reach * 0.02
+    assert np.allclose(kept, X0, atol=1e-9)
+    # a hidden keypoint beside the cloud (4 mm above the seen rope: within reach) is projected onto it
+    Xb = X0.copy()
+    Xb[5:, 2] = 0.004
+    moved = solve_keypoints(Xb, edges, rest, anchors, X0[anchors], cloud, 1, P, hidden=np.ones(N, bool))
+    assert abs(moved[5, 2]) < 1e-9 and np.allclose(moved[1:4], Xb[1:4], atol=5e-4)

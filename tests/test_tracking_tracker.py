@@ -165,3 +165,31 @@ def test_without_anchors_the_grasped_keypoint_stays_at_the_tcp_and_detections_ar
     r_full = full_tr.step(cloud1, tcp=tcp1, gripper_closed=np.array([True]))
     # the free end is a re-detected (fixed) tip in the full method and moves freely without anchors
     assert not np.allclose(r.keypoints[free_end], r_full.keypoints[free_end])
+
+
+def test_hidden_keypoints_move_with_the_hand_and_do_not_fail_the_frame() -> None:
+    from tracking.init import LEAF, Topology
+    from tracking.solver import edge_colouring
+
+    K, T = S.default_camera(W, H)
+    N = 11
+    edges = np.stack([np.arange(N - 1), np.arange(1, N)], axis=1)
+    topo = Topology("1d", edges, np.full(N - 1, 0.02), np.array([0, N - 1]), np.array([LEAF, LEAF]),
+                    [np.arange(N)], colours=edge_colouring(edges, N))
+    X0 = np.stack([0.02 * np.arange(N), np.zeros(N), np.zeros(N)], axis=1)
+    xs = np.linspace(0.1, 0.2, 300)
+    cloud = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)  # the rope seen beyond the hand
+    hidden = X0[:, 0] < 0.1  # keypoint 0 held at the TCP, 1-4 behind the hand
+    tr = Tracker(P, K, T)
+    tr.resume(topo, X0, np.array([0]))
+    first = tr.step(cloud, tcp=X0[:1], hidden=hidden)
+    lift = np.array([[0.0, 0.0, 0.01]])
+    second = tr.step(cloud, tcp=X0[:1] + lift, hidden=hidden)
+    for res in (first, second):
+        # the paper's CD over all keypoints is large (they are 2-10 cm from the cloud), but they have none of their own
+        assert res.chamfer_mm > 1e3 * P.max_chamfer_m
+        assert res.status == TrackStatus.OK
+    X = second.keypoints
+    assert np.allclose(X[0], X0[0] + lift[0])  # held at the TCP
+    assert np.all(X[1:4, 2] > 0.008)  # the hidden keypoints followed the hand up (by the edges alone: < 3 mm)
+    assert np.abs(X[6:, 2]).max() < 1e-6  # the seen ones stay on the cloud

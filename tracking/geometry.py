@@ -84,6 +84,25 @@ def gaps_hidden(
     return (hid.reshape(far.shape) | ~far).all(axis=1) & far.any(axis=1)
 
 
+def hidden_behind(
+    points: np.ndarray, mask: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, margin_m: float,
+) -> np.ndarray:
+    """(N,) bool: which points (N, 3) m world lie out of sight behind what a masked pixel shows (mask (h, w) bool,
+    e.g. the arm's pixels; depth (h, w) m measured there, 0 = none; camera K (3, 3) at T_world_cam (4, 4)): on a
+    masked pixel and not nearer than its depth less margin_m. Such a point has no cloud of its own; a point well
+    in front of the mask's surface (a rope passing before the arm) is seen."""
+    uv, z = project_points(np.asarray(points, np.float64).reshape(-1, 3), K, T_world_cam)
+    h, w = mask.shape
+    c = np.floor(uv[:, 0]).astype(np.int64)
+    r = np.floor(uv[:, 1]).astype(np.int64)
+    inside = (z > 0) & (c >= 0) & (c < w) & (r >= 0) & (r < h)
+    out = np.zeros(len(z), bool)
+    ri, ci = r[inside], c[inside]
+    d = depth[ri, ci]
+    out[inside] = mask[ri, ci] & ((d <= 0) | (z[inside] > d - margin_m))
+    return out
+
+
 def decimation_stride(K: np.ndarray, pixel_m: float) -> int:
     """Stride s >= 1 (px) so that every s-th pixel of a camera with matrix K (3, 3) spans about
     ``pixel_m`` metres at 1 m depth (s = round(fx * pixel_m)); 1 when pixel_m <= 0."""

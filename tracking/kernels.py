@@ -190,6 +190,8 @@ def solve_iterations(
     hard_idx: np.ndarray,
     hard_pos: np.ndarray,
     iterations: int,
+    hidden: np.ndarray,
+    hidden_reach_m: float,
 ) -> None:
     """Algorithm 1's iterations on keypoints X (N, 3) m, in place.
 
@@ -199,6 +201,8 @@ def solve_iterations(
     nearest point; else nearest point plus its offset restricted to the local extent of its k nearest points,
     clamped to max_slide_m: keypoints slide below the cloud's point spacing); soft anchors soft_idx (S,) moved
     the fraction soft_w (S,) of the way to soft_pos (S, 3); hard anchors hard_idx (H,) put on hard_pos (H, 3).
+    A keypoint flagged in hidden (N,) bool (out of sight) is projected only when its nearest point is within
+    hidden_reach_m.
     The k nearest cloud points are searched among a keypoint's candidates (the points within a radius of where
     they were last gathered from the whole cloud, ``_refresh``), exact while the k-th distance is within that
     radius less the keypoint's move since; otherwise gathered again.
@@ -247,6 +251,8 @@ def solve_iterations(
                         found = _insert(_sq_dist(x0, x1, x2, pts, j), j, best_d, best_i, found, kk)
                 if radius[n] < 0 or found < kk or np.sqrt(best_d[kk - 1]) > radius[n] - moved:
                     cand = _refresh(x, pts, slabs, lo, w, kk, n, centre, radius, cand, count, best_d, best_i)
+                if hidden[n] and best_d[0] > hidden_reach_m * hidden_reach_m:
+                    continue  # out of sight, and the cloud near it is another part of the object
                 p = pts[best_i[0]]
                 if k <= 1:
                     X[n, 0], X[n, 1], X[n, 2] = p[0], p[1], p[2]
@@ -603,6 +609,7 @@ def warm_up() -> None:
     solve_iterations(
         X.copy(), np.zeros(1, np.int64), np.ones(1, np.int64), one, one, 0.01 * one, X + 0.001, 2, 0.003,
         np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(1, np.int64), X[:1].copy(), 1,
+        np.zeros(2, np.bool_), 0.01,
     )
     dbscan(X, 0.015, 2)
     voxel_centroids(X, 0.009)

@@ -105,7 +105,12 @@ class TrackingParams:
       fold_span_min: a folded chain is laid out again along itself only when its polyline without the fold
         spans at least this fraction of the chain's rest length (else the object's missing part is out of
         sight, e.g. a branch hanging towards the camera, and spacing the chain on what is seen compresses it).
-      grasp_gate_m: a TCP farther than this from every keypoint holds nothing, m.
+      grasp_gate_m: a TCP farther than this from every keypoint holds nothing, m (a hand hides the few
+        centimetres of a held rope between its fingers: the end seen nearest to a TCP lies up to ~7 cm from it).
+      hidden_reach: a 1D keypoint hidden behind the arm in the image (``tracking.geometry.hidden_behind``) is
+        projected onto the cloud only when its nearest point lies within this fraction of the median edge rest
+        length (the rope just beside the fingers); farther, the cloud it would be pulled onto is another part of
+        the object, and the edges, its grasp and its hand's motion place it instead.
       hand_hidden_m: a 1D object's initial growth towards a gripper that stops short of its TCP is kept when
         it stops within this of the TCP and the rest of the way is hidden behind the arm in the image (a hand,
         whose fingers and body span about this much around its TCP, hides the end it holds), m.
@@ -188,7 +193,8 @@ class TrackingParams:
     relift_span_tol: float = 0.06
     fold_cos: float = -0.5
     fold_span_min: float = 0.8
-    grasp_gate_m: float = 0.05
+    grasp_gate_m: float = 0.08
+    hidden_reach: float = 0.5
     hand_hidden_m: float = 0.12
     causal_window: int = 3
     symmetric_window: int = 5

@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 
 from tdcommon.meshes import OutwardCache
 from tracking.classify import classify_object
-from tracking.geometry import decimated_intrinsics, decimation_stride, edge_samples, gaps_hidden
+from tracking.geometry import decimated_intrinsics, decimation_stride, edge_samples, gaps_hidden, hidden_behind
 from tracking.init import InitialisationError, Topology
 from tracking.params import TrackingParams
 from tracking.segmentation import (
@@ -452,7 +452,10 @@ class LivePipeline:
         )
         self._timings["segment"] = 1e3 * (time.perf_counter() - t0)
         topology = self.tracker.topology
-        res = self.tracker.step(seg.points, tcp=tcp, gripper_closed=closed)
+        # a rope's keypoints behind the arm have no cloud of their own (a cloth's hidden part is held by its grid)
+        hidden = None if arm is None or topo.kind != "1d" else hidden_behind(
+            X, arm, depth, self.K_seg, self.T, self.params.arm_margin_m)
+        res = self.tracker.step(seg.points, tcp=tcp, gripper_closed=closed, hidden=hidden)
         self._timings.update(self.tracker.last_timings_ms)
         p = self.params
         n = (p.background_confirm_2d if topo.kind == "2d" else p.background_confirm_1d) - 1
@@ -466,13 +469,14 @@ class LivePipeline:
             self.set_reference(self._recent[0] if self._recent else depth)
             self._recent.clear()
             self._sizes.clear()
-            out = self._output("lost", res, seg.points)
+            out = self._output("lost", res, seg.points, grid=topo.kind == "2d")
             return PipelineOutput(**{**out.__dict__, "topology": topology})
         return self._output("tracking" if res.status == TrackStatus.OK else "degraded", res, seg.points)
 
-    def _output(self, status: str, res: FrameResult, cloud: np.ndarray) -> PipelineOutput:
+    def _output(self, status: str, res: FrameResult, cloud: np.ndarray, grid: bool | None = None) -> PipelineOutput:
         note = ""
-        grid = self.tracker.topology is None or self.tracker.topology.kind == "2d"
+        if grid is None:
+            grid = self.tracker.topology is None or self.tracker.topology.kind == "2d"
         if res.tangled:
             note = (f"grid tangled: {res.tangled} cells" if grid else f"chain folded: {res.tangled} keypoints") + (
                 " after a repair" if res.repaired else "")

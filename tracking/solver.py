@@ -44,6 +44,7 @@ def solve_keypoints(
     params: TrackingParams,
     classes: list[np.ndarray] | None = None,
     anchor_weight: np.ndarray | None = None,
+    hidden: np.ndarray | None = None,
 ) -> np.ndarray:
     """Solve problem (1) by Algorithm 1 from the warm start X0 (N, 3) m.
 
@@ -52,7 +53,8 @@ def solve_keypoints(
     anchor; below 1 the anchor's keypoint stays free in the edge and cloud projections and is moved
     that fraction of the way to its anchor after each iteration (a measured anchor with noise, which a
     hard constraint passes on to its edges). The ablation switches of ``params`` turn the anchor, edge
-    and cloud projections off. Returns X (N, 3) float64, metres, world frame.
+    and cloud projections off. hidden (N,) bool: keypoints out of sight, projected onto the cloud only
+    within ``params.hidden_reach`` of the median rest length of it. Returns X (N, 3) float64, metres, world frame.
     """
     X = np.array(X0, np.float64, copy=True)
     N = len(X)
@@ -82,6 +84,8 @@ def solve_keypoints(
         X, first, second, inv_mass[first], inv_mass[second], rest[order], np.ascontiguousarray(pts, np.float64),
         int(params.surface_k), float(params.surface_slide_m),
         soft_idx, np.ascontiguousarray(soft_pos), soft_w, hard_idx, np.ascontiguousarray(hard_pos), int(iterations),
+        np.zeros(N, np.bool_) if hidden is None else np.ascontiguousarray(hidden, np.bool_),
+        params.hidden_reach * float(np.median(rest)) if len(rest) else 0.0,
     )
     return X
 

@@ -166,6 +166,7 @@ def track_frame(
     tcp: np.ndarray | None = None,
     grasp_idx: np.ndarray | None = None,
     X_pred: np.ndarray | None = None,
+    hidden: np.ndarray | None = None,
 ) -> tuple[np.ndarray, int]:
     """One step of Algorithm 2: match anchors, add grasped TCP anchors, solve warm-started from X_prev.
 
@@ -176,6 +177,7 @@ def track_frame(
     Keypoints held by a gripper (grasp_idx >= 0) are fixed at that gripper's TCP (G, 3) m, also in the
     ``use_anchors=False`` ablation, which leaves out the re-detected anchors only: the TCPs are the robot's
     inputs, not detections (the paper's ablation, where a rope held at both ends tracks as the full method).
+    hidden: (N,) bool keypoints out of sight behind the arm (``solve_keypoints``).
     Returns (X (N, 3) float64 m, number of matched anchors).
     """
     ai = topology.anchor_idx
@@ -216,7 +218,7 @@ def track_frame(
     apos = np.concatenate(pos) if pos else np.zeros((0, 3))
     X = solve_keypoints(
         X_prev, topology.edges, topology.rest, aidx, apos, cloud, params.track_iterations, params, topology.colours,
-        weight,
+        weight, hidden,
     )
     return X, int((m >= 0).sum())
 
@@ -289,6 +291,7 @@ class Tracker:
         self.grasp_idx = np.zeros(0, np.int64)
         self._history.clear()
         self._bad = 0
+        self._tcp: np.ndarray | None = None  # the last tracked frame's TCPs (G, 3) m
 
     def initialise(
         self,
@@ -336,9 +339,15 @@ class Tracker:
         self._history.append(self.keypoints)
 
     def step(
-        self, cloud: np.ndarray, tcp: np.ndarray | None = None, gripper_closed: np.ndarray | None = None
+        self, cloud: np.ndarray, tcp: np.ndarray | None = None, gripper_closed: np.ndarray | None = None,
+        hidden: np.ndarray | None = None,
     ) -> FrameResult:
         """Track one frame's segmented cloud (M, 3) m; tcp (G, 3) m and gripper_closed (G,) bool are optional.
+
+        hidden (N,) bool: the keypoints out of sight behind the arm this frame (``tracking.geometry.hidden_behind``).
+        They have no cloud of their own: they start from where their nearest TCP's motion since the last frame
+        takes them (what a hand hides moves with it), are projected onto the cloud only beside it
+        (``params.hidden_reach``) and are left out of the frame's CD, as held keypoints are (the robot places those).
 
         Grasp indices follow the grippers (regrasp on closing). After ``lost_after_frames`` bad frames
         the status is LOST and the tracker resets: the caller must initialise again.
@@ -357,13 +366,24 @@ class Tracker:
         t1 = time.perf_counter()
         pred = self.keypoints if self._velocity is None else self.keypoints + self._velocity
         cloud = np.ascontiguousarray(cloud, np.float64)
-        X, matched = track_frame(self.keypoints, self.topology, cloud, det, kinds, p, tcp, self.grasp_idx, pred)
+        tcp_now = None if tcp is None else np.asarray(tcp, np.float64).reshape(-1, 3)
+        warm = self.keypoints
+        if hidden is not None and hidden.any() and tcp_now is not None and len(tcp_now) \
+                and self._tcp is not None and self._tcp.shape == tcp_now.shape:
+            h = np.flatnonzero(hidden)
+            near = np.argmin(np.linalg.norm(self.keypoints[h, None, :] - self._tcp[None, :, :], axis=2), axis=1)
+            warm = self.keypoints.copy()
+            warm[h] += (tcp_now - self._tcp)[near]
+            pred = pred.copy()
+            pred[h] = warm[h]
+        self._tcp = tcp_now
+        X, matched = track_frame(warm, self.topology, cloud, det, kinds, p, tcp, self.grasp_idx, pred, hidden)
         tangled, repaired = 0, False
         if self.topology.grid_shape is not None:
             X, matched, tangled, repaired = self._untangle(X, matched, cloud, det, kinds, tcp, held)
         elif self.topology.kind == "1d":
-            X, matched, tangled, repaired = self._unfold(X, matched, cloud, det, kinds, tcp)
-        res = self._result(X, cloud, matched, na, tangled=tangled, repaired=repaired)
+            X, matched, tangled, repaired = self._unfold(X, matched, cloud, det, kinds, tcp, hidden)
+        res = self._result(X, cloud, matched, na, tangled=tangled, repaired=repaired, hidden=hidden)
         self.last_timings_ms = {"anchors": 1e3 * (t1 - t0), "solve": 1e3 * (time.perf_counter() - t1)}
         return res
 
@@ -390,7 +410,7 @@ class Tracker:
 
     def _unfold(
         self, X: np.ndarray, matched: int, cloud: np.ndarray, det: np.ndarray, kinds: np.ndarray,
-        tcp: np.ndarray | None,
+        tcp: np.ndarray | None, hidden: np.ndarray | None = None,
     ) -> tuple[np.ndarray, int, int, bool]:
         """A 1D solution X (N, 3) m checked for chains folded onto themselves; a folded one is solved again from
         its chains laid out without the fold (``unfold_chains``), kept when fewer keypoints turn back and its
@@ -403,7 +423,7 @@ class Tracker:
         X0 = unfold_chains(X, self.topology, cos_max, self.params.fold_span_min)
         if X0 is None:
             return X, matched, bad, False
-        X2, m2 = track_frame(X0, self.topology, cloud, det, kinds, self.params, tcp, self.grasp_idx, X0)
+        X2, m2 = track_frame(X0, self.topology, cloud, det, kinds, self.params, tcp, self.grasp_idx, X0, hidden)
         bad2 = len(chain_reversals(X2, self.topology.chains, cos_max))
         edges, rest = self.topology.edges, self.topology.rest
         if bad2 < bad and edge_rmse_mm(X2, edges, rest) <= edge_rmse_mm(X, edges, rest):
@@ -432,7 +452,7 @@ class Tracker:
 
     def _result(
         self, X: np.ndarray, cloud: np.ndarray | cKDTree, matched: int, total: int, force_bad: bool = False,
-        tangled: int = 0, repaired: bool = False,
+        tangled: int = 0, repaired: bool = False, hidden: np.ndarray | None = None,
     ) -> FrameResult:
         """Score a solution, update the state and the loss-of-track counter.
 
@@ -441,15 +461,20 @@ class Tracker:
         tangled or a chain left folded (``tangled`` cells / keypoints) is kept as the warm start too and flagged
         DEGRADED, but does not count
         towards a loss: the next frame tries the repair again, in the track's own topology, which a
-        re-initialisation would replace (new rest lengths, keypoints renumbered).
+        re-initialisation would replace (new rest lengths, keypoints renumbered). The CD that judges the frame
+        is over the keypoints neither hidden (hidden (N,) bool) nor held, which have no cloud of their own; the
+        CD reported is the paper's, over all keypoints.
         """
         assert self.topology is not None
         p = self.params
         abs_mm = edge_rmse_mm(X, self.topology.edges, self.topology.rest)
         n_points = cloud.n if isinstance(cloud, cKDTree) else len(cloud)
         cd_mm = chamfer_mm(X, cloud) if n_points else float("inf")
+        seen = np.ones(len(X), bool) if hidden is None else ~np.asarray(hidden, bool)
+        seen[self.grasp_idx[(self.grasp_idx >= 0) & (self.grasp_idx < len(X))]] = False
+        cd_seen = cd_mm if seen.all() or not seen.any() or not n_points else chamfer_mm(X[seen], cloud)
         jump = self.keypoints is not None and bool(np.median(np.linalg.norm(X - self.keypoints, axis=1)) > p.max_jump_m)
-        bad = force_bad or jump or abs_mm > 1e3 * p.max_edge_rmse_m or cd_mm > 1e3 * p.max_chamfer_m
+        bad = force_bad or jump or abs_mm > 1e3 * p.max_edge_rmse_m or cd_seen > 1e3 * p.max_chamfer_m
         self._bad = self._bad + 1 if bad else 0
         if not (force_bad or jump):
             if self.keypoints is not None and self.keypoints is not X:
