@@ -138,3 +138,39 @@ def test_hidden_keypoint_is_projected_onto_the_cloud_only_beside_it() -> None:
     Xb[5:, 2] = 0.004
     moved = solve_keypoints(Xb, edges, rest, anchors, X0[anchors], cloud, 1, P, hidden=np.ones(N, bool))
     assert abs(moved[5, 2]) < 1e-9 and np.allclose(moved[1:4], Xb[1:4], atol=5e-4)
+
+
+def test_chain_neighbours_two_each_side_and_none_at_a_junction() -> None:
+    from tracking.solver import chain_neighbours
+
+    nb = chain_neighbours([np.array([0, 1, 2, 3]), np.array([1, 4, 5])], 6)
+    assert nb[2].tolist() == [0, 1, 3, -1]
+    assert nb[0].tolist() == [-1, -1, 1, 2]
+    assert nb[4].tolist() == [-1, 1, 5, -1]
+    assert nb[1].tolist() == [-1, -1, -1, -1]  # on two chains: no one curve runs through it
+
+
+def test_hidden_stretch_is_drawn_smooth_not_kinked() -> None:
+    from tracking.solver import chain_neighbours
+
+    # keypoints 0-3 seen on a straight rope along x, 4-7 hidden behind a hand, 8 held at the TCP further along x
+    N = 9
+    rest = np.full(N - 1, 0.02)
+    edges = np.stack([np.arange(N - 1), np.arange(1, N)], axis=1)
+    X0 = np.stack([0.02 * np.arange(N), np.zeros(N), np.zeros(N)], axis=1)
+    X0[8, 0] = 0.15  # slack: the hidden stretch must bend somewhere
+    X0[[5, 7], 1] = 0.012  # warm start kinked
+    xs = np.linspace(0.0, 0.06, 100)
+    cloud = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)
+    hidden = np.arange(N) >= 4
+    anchors = np.array([0, 8])
+    nb = chain_neighbours([np.arange(N)], N)
+
+    def kink(X: np.ndarray) -> float:
+        return float(np.abs(np.diff(X[3:], n=2, axis=0)).sum())
+
+    plain = solve_keypoints(X0, edges, rest, anchors, X0[anchors], cloud, 30, P, hidden=hidden)
+    smooth = solve_keypoints(X0, edges, rest, anchors, X0[anchors], cloud, 30, P, hidden=hidden, bend=nb)
+    assert kink(smooth) < 0.5 * kink(plain)
+    assert edge_rmse_mm(smooth, edges, rest) < 2.0
+    assert np.abs(smooth[:4, 1:]).max() < 1e-9  # the seen part stays on the cloud

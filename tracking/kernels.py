@@ -192,6 +192,8 @@ def solve_iterations(
     iterations: int,
     hidden: np.ndarray,
     hidden_reach_m: float,
+    bend: np.ndarray,
+    bend_k: float,
 ) -> None:
     """Algorithm 1's iterations on keypoints X (N, 3) m, in place.
 
@@ -202,7 +204,9 @@ def solve_iterations(
     clamped to max_slide_m: keypoints slide below the cloud's point spacing); soft anchors soft_idx (S,) moved
     the fraction soft_w (S,) of the way to soft_pos (S, 3); hard anchors hard_idx (H,) put on hard_pos (H, 3).
     A keypoint flagged in hidden (N,) bool (out of sight) is projected only when its nearest point is within
-    hidden_reach_m.
+    hidden_reach_m, and before each sweep moves the fraction bend_k of the way to where its chain runs smoothest:
+    the least squared second difference over its neighbours bend (N, 4) int64, two and one back and one and two on
+    along its chain (-1: none; a chain end or a junction, which has no such pair, is not moved).
     The k nearest cloud points are searched among a keypoint's candidates (the points within a radius of where
     they were last gathered from the whole cloud, ``_refresh``), exact while the k-th distance is within that
     radius less the keypoint's move since; otherwise gathered again.
@@ -225,6 +229,20 @@ def solve_iterations(
     srt = np.empty(kk, np.int64)
     nb = np.empty((kk, 3))
     for _ in range(iterations):
+        for n in range(bend.shape[0]):
+            if not hidden[n] or bend[n, 1] < 0 or bend[n, 2] < 0:
+                continue
+            b0, b1, b2, b3 = bend[n, 0], bend[n, 1], bend[n, 2], bend[n, 3]
+            for i in range(3):
+                acc = 2.0 * (X[b1, i] + X[b2, i])  # |X[b1] - 2 X[n] + X[b2]|^2
+                wt = 4.0
+                if b0 >= 0:  # |X[b0] - 2 X[b1] + X[n]|^2
+                    acc += 2.0 * X[b1, i] - X[b0, i]
+                    wt += 1.0
+                if b3 >= 0:  # |X[n] - 2 X[b2] + X[b3]|^2
+                    acc += 2.0 * X[b2, i] - X[b3, i]
+                    wt += 1.0
+                X[n, i] += bend_k * (acc / wt - X[n, i])
         for e in range(len(e_first)):
             i, j = e_first[e], e_second[e]
             wsum = e_wi[e] + e_wj[e]
@@ -609,7 +627,7 @@ def warm_up() -> None:
     solve_iterations(
         X.copy(), np.zeros(1, np.int64), np.ones(1, np.int64), one, one, 0.01 * one, X + 0.001, 2, 0.003,
         np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(1, np.int64), X[:1].copy(), 1,
-        np.zeros(2, np.bool_), 0.01,
+        np.zeros(2, np.bool_), 0.01, np.full((2, 4), -1, np.int64), 0.1,
     )
     dbscan(X, 0.015, 2)
     voxel_centroids(X, 0.009)

@@ -111,6 +111,9 @@ class TrackingParams:
         projected onto the cloud only when its nearest point lies within this fraction of the median edge rest
         length (the rope just beside the fingers); farther, the cloud it would be pulled onto is another part of
         the object, and the edges, its grasp and its hand's motion place it instead.
+      hidden_bend: each solver sweep, such a hidden keypoint moves this fraction of the way to where its chain
+        runs smoothest (least second differences over two neighbours each side): the hidden stretch continues the
+        seen rope's direction into the hand instead of cutting a straight chord; more fights the edge lengths.
       hand_hidden_m: a 1D object's initial growth towards a gripper that stops short of its TCP is kept when
         it stops within this of the TCP and the rest of the way is hidden behind the arm in the image (a hand,
         whose fingers and body span about this much around its TCP, hides the end it holds), m.
@@ -195,6 +198,7 @@ class TrackingParams:
     fold_span_min: float = 0.8
     grasp_gate_m: float = 0.08
     hidden_reach: float = 0.5
+    hidden_bend: float = 0.1
     hand_hidden_m: float = 0.12
     causal_window: int = 3
     symmetric_window: int = 5

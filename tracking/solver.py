@@ -45,6 +45,7 @@ def solve_keypoints(
     classes: list[np.ndarray] | None = None,
     anchor_weight: np.ndarray | None = None,
     hidden: np.ndarray | None = None,
+    bend: np.ndarray | None = None,
 ) -> np.ndarray:
     """Solve problem (1) by Algorithm 1 from the warm start X0 (N, 3) m.
 
@@ -54,7 +55,9 @@ def solve_keypoints(
     that fraction of the way to its anchor after each iteration (a measured anchor with noise, which a
     hard constraint passes on to its edges). The ablation switches of ``params`` turn the anchor, edge
     and cloud projections off. hidden (N,) bool: keypoints out of sight, projected onto the cloud only
-    within ``params.hidden_reach`` of the median rest length of it. Returns X (N, 3) float64, metres, world frame.
+    within ``params.hidden_reach`` of the median rest length of it and, with their chain neighbours bend (N, 4)
+    int64 (``chain_neighbours``), drawn ``params.hidden_bend`` of the way towards a smooth curve each sweep (a rope
+    is not kinked where nobody sees it). Returns X (N, 3) float64, metres, world frame.
     """
     X = np.array(X0, np.float64, copy=True)
     N = len(X)
@@ -86,8 +89,25 @@ def solve_keypoints(
         soft_idx, np.ascontiguousarray(soft_pos), soft_w, hard_idx, np.ascontiguousarray(hard_pos), int(iterations),
         np.zeros(N, np.bool_) if hidden is None else np.ascontiguousarray(hidden, np.bool_),
         params.hidden_reach * float(np.median(rest)) if len(rest) else 0.0,
+        np.full((0, 4), -1, np.int64) if bend is None else np.ascontiguousarray(bend, np.int64),
+        float(params.hidden_bend),
     )
     return X
+
+
+def chain_neighbours(chains: list[np.ndarray], n_keypoints: int) -> np.ndarray:
+    """(N, 4) int64: each keypoint's neighbours two and one back and one and two on along its chain (chains:
+    keypoint index arrays, node to node), -1 where there is none; a keypoint on several chains (a junction) has
+    none at all (no one smooth curve runs through it)."""
+    out = np.full((n_keypoints, 4), -1, np.int64)
+    seen = np.zeros(n_keypoints, np.int64)
+    for ch in chains:
+        ch = np.asarray(ch, np.int64)
+        seen[ch] += 1
+        pad = np.concatenate([[-1, -1], ch, [-1, -1]])
+        out[ch] = np.stack([pad[:-4], pad[1:-3], pad[3:-1], pad[4:]], axis=1)
+    out[seen > 1] = -1
+    return out
 
 
 def chain_tangents(X: np.ndarray, chains: list[np.ndarray]) -> np.ndarray:

@@ -20,7 +20,7 @@ from tracking.kernels import warm_up
 from tracking.metrics import chamfer_mm, edge_rmse_mm
 from tracking.params import TrackingParams
 from tracking.skeleton import LEAF
-from tracking.solver import solve_keypoints
+from tracking.solver import chain_neighbours, solve_keypoints
 from tracking.tangle import chain_reversals, relift_grid, tangled_cells, unfold_chains
 
 
@@ -219,6 +219,7 @@ def track_frame(
     X = solve_keypoints(
         X_prev, topology.edges, topology.rest, aidx, apos, cloud, params.track_iterations, params, topology.colours,
         weight, hidden,
+        chain_neighbours(topology.chains, len(X_prev)) if hidden is not None and topology.kind == "1d" else None,
     )
     return X, int((m >= 0).sum())
 
