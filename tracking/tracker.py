@@ -348,7 +348,8 @@ class Tracker:
         hidden (N,) bool: the keypoints out of sight behind the arm this frame (``tracking.geometry.hidden_behind``).
         They have no cloud of their own: they start from where their nearest TCP's motion since the last frame
         takes them (what a hand hides moves with it), are projected onto the cloud only beside it
-        (``params.hidden_reach``) and are left out of the frame's CD, as held keypoints are (the robot places those).
+        (``params.hidden_reach``), are drawn towards a smooth curve along their chain (``params.hidden_bend``) and
+        are left out of the CD that judges the frame, as held keypoints are (the robot places those).
 
         Grasp indices follow the grippers (regrasp on closing). After ``lost_after_frames`` bad frames
         the status is LOST and the tracker resets: the caller must initialise again.
