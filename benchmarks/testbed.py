@@ -32,8 +32,8 @@ which ``trackdeform eval`` cannot show on sequences without ground truth.
 
 The default set (``--set all``) is the five-sequence development set plus the variants below (camera
 from the side and from above, rope lengths 0.8-1.0 m, radii 4-7 mm, colours, the three speeds, other
-seeds); generating it the first time takes ~40 min and ~4 GB (~3.5 min a sequence), tracking and scoring it
-~8 min here.
+seeds; 29 sequences); generating it the first time takes 45-100 min and ~5 GB (1.5-3.5 min a sequence on this
+2-core machine), tracking and scoring it ~8 min here.
 """
 
 from __future__ import annotations
@@ -64,6 +64,7 @@ ABOVE = [0.95, -0.45, 1.45, 0.45, -0.45, 0.10]
 OBLIQUE = [1.35, -0.05, 0.85, 0.50, -0.45, 0.15]
 FRONT_LOW = [1.25, -0.45, 0.60, 0.45, -0.45, 0.15]
 OBLIQUE_RIGHT = [1.2, -0.95, 1.0, 0.45, -0.40, 0.15]
+HIGH_FRONT = [1.6, -0.45, 1.1, 0.45, -0.45, 0.15]
 VARIANTS: list[dict[str, Any]] = [
     dict(name="rope_side_long_thin", obj="rope", speed="medium", seconds=5, seed=11, camera=SIDE, length=1.0,
          radius=0.004, rgb=[0.15, 0.3, 0.85]),
@@ -96,6 +97,14 @@ VARIANTS: list[dict[str, Any]] = [
     dict(name="rope_medium_obl2_s62", obj="rope", speed="medium", seconds=5, seed=62, camera=OBLIQUE_RIGHT,
          length=0.85, radius=0.007, rgb=[0.9, 0.5, 0.1]),
     dict(name="rope_side_slow_s64", obj="rope", speed="slow", seconds=5, seed=64, camera=SIDE, radius=0.0055),
+    dict(name="rope_slow_high_s81", obj="rope", speed="slow", seconds=5, seed=81, camera=HIGH_FRONT, length=0.95,
+         radius=0.006, rgb=[0.6, 0.6, 0.1]),
+    dict(name="rope_medium_side_s83", obj="rope", speed="medium", seconds=5, seed=83, camera=SIDE, length=0.85,
+         radius=0.0045, rgb=[0.1, 0.5, 0.5]),
+    dict(name="bdlo_medium_high_s84", obj="bdlo", speed="medium", seconds=5, seed=84, camera=HIGH_FRONT,
+         branch_len=0.24, radius=0.006, rgb=[0.2, 0.6, 0.9]),
+    dict(name="bdlo_slow_obl2_s85", obj="bdlo", speed="slow", seconds=5, seed=85, camera=OBLIQUE_RIGHT, length=0.9,
+         branch_len=0.2),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
