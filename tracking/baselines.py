@@ -91,8 +91,9 @@ class BaselineTracker(Tracker):
         self.cpd = {"beta_m": cpd_beta_m, "lam": cpd_lambda, "w": cpd_w}
 
     def step(self, cloud: np.ndarray, tcp: np.ndarray | None = None,
-             gripper_closed: np.ndarray | None = None) -> FrameResult:
-        """One frame's segmented cloud (M, 3) m -> the baseline's keypoints, scored like the full method."""
+             gripper_closed: np.ndarray | None = None, hidden: np.ndarray | None = None) -> FrameResult:
+        """One frame's segmented cloud (M, 3) m -> the baseline's keypoints, scored like the full method (the
+        keypoints hidden behind the arm, hidden (N,) bool, are the full method's concern: a baseline has none)."""
         early = self._begin_step(cloud, tcp, gripper_closed)
         if early is not None:
             return early
