@@ -174,3 +174,23 @@ def test_hidden_stretch_is_drawn_smooth_not_kinked() -> None:
     assert kink(smooth) < 0.5 * kink(plain)
     assert edge_rmse_mm(smooth, edges, rest) < 2.0
     assert np.abs(smooth[:4, 1:]).max() < 1e-9  # the seen part stays on the cloud
+
+
+def test_hidden_keypoint_is_not_pulled_beyond_its_edge_from_a_held_neighbour() -> None:
+    # keypoint 0 held at the TCP, keypoint 1 hidden by the hand; the seen rope starts 2.8 cm from the TCP, 8 mm
+    # from keypoint 1 (within hidden_reach) but beyond its 2 cm edge (plus hidden_stretch) from the held end
+    N = 6
+    rest = np.full(N - 1, 0.02)
+    edges = np.stack([np.arange(N - 1), np.arange(1, N)], axis=1)
+    X0 = np.stack([0.02 * np.arange(N), np.zeros(N), np.zeros(N)], axis=1)
+    X0[1, 1] = 0.004  # off the line: a projection would move it
+    xs = np.linspace(0.028, 0.1, 200)
+    cloud = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)
+    hidden = np.zeros(N, bool)
+    hidden[1] = True
+    held = np.array([0])
+    kept = solve_keypoints(X0, edges, rest, held, X0[held], cloud, 1, P, hidden=hidden)
+    assert np.linalg.norm(kept[1] - kept[0]) < 0.0205 and kept[1, 1] > 0.001  # not projected
+    loose = dataclasses.replace(P, hidden_stretch=1.0)  # a 4 cm reach: the seen rope's start is within it
+    pulled = solve_keypoints(X0, edges, rest, held, X0[held], cloud, 1, loose, hidden=hidden)
+    assert abs(pulled[1, 1]) < 1e-9

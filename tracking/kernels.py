@@ -194,6 +194,8 @@ def solve_iterations(
     hidden_reach_m: float,
     bend: np.ndarray,
     bend_k: float,
+    tether: np.ndarray,
+    tether_m: np.ndarray,
 ) -> None:
     """Algorithm 1's iterations on keypoints X (N, 3) m, in place.
 
@@ -206,7 +208,9 @@ def solve_iterations(
     A keypoint flagged in hidden (N,) bool (out of sight) is projected only when its nearest point is within
     hidden_reach_m, and before each sweep moves the fraction bend_k of the way to where its chain runs smoothest:
     the least squared second difference over its neighbours bend (N, 4) int64, two and one back and one and two on
-    along its chain (-1: none; a chain end or a junction, which has no such pair, is not moved).
+    along its chain (-1: none; a chain end or a junction, which has no such pair, is not moved). Nor is a hidden
+    keypoint projected onto a point farther than tether_m (N,) m from its fixed neighbour, hard_pos[tether] (tether
+    (N,) int64 into hard_idx, -1: none).
     The k nearest cloud points are searched among a keypoint's candidates (the points within a radius of where
     they were last gathered from the whole cloud, ``_refresh``), exact while the k-th distance is within that
     radius less the keypoint's move since; otherwise gathered again.
@@ -272,6 +276,8 @@ def solve_iterations(
                 if hidden[n] and best_d[0] > hidden_reach_m * hidden_reach_m:
                     continue  # out of sight, and the cloud near it is another part of the object
                 p = pts[best_i[0]]
+                if hidden[n] and tether[n] >= 0 and _sq_dist(p[0], p[1], p[2], hard_pos, tether[n]) > tether_m[n] ** 2:
+                    continue  # out of sight, and that point lies beyond its edge from its fixed neighbour
                 if k <= 1:
                     X[n, 0], X[n, 1], X[n, 2] = p[0], p[1], p[2]
                     continue
@@ -628,6 +634,7 @@ def warm_up() -> None:
         X.copy(), np.zeros(1, np.int64), np.ones(1, np.int64), one, one, 0.01 * one, X + 0.001, 2, 0.003,
         np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(1, np.int64), X[:1].copy(), 1,
         np.zeros(2, np.bool_), 0.01, np.full((2, 4), -1, np.int64), 0.1,
+        np.array([-1, 0]), np.array([0.0, 0.02]),
     )
     dbscan(X, 0.015, 2)
     voxel_centroids(X, 0.009)

@@ -114,6 +114,8 @@ class TrackingParams:
       hidden_bend: each solver sweep, such a hidden keypoint moves this fraction of the way to where its chain
         runs smoothest (least second differences over two neighbours each side): the hidden stretch continues the
         seen rope's direction into the hand instead of cutting a straight chord; more fights the edge lengths.
+      hidden_stretch: nor is such a hidden keypoint projected onto a point farther from a fixed neighbour (the
+        held end next to it) than its edge's rest length times 1 + this: the hand hides more rope than one edge.
       hand_hidden_m: a 1D object's initial growth towards a gripper that stops short of its TCP is kept when
         it stops within this of the TCP and the rest of the way is hidden behind the arm in the image (a hand,
         whose fingers and body span about this much around its TCP, hides the end it holds), m.
@@ -199,6 +201,7 @@ class TrackingParams:
     grasp_gate_m: float = 0.08
     hidden_reach: float = 0.5
     hidden_bend: float = 0.1
+    hidden_stretch: float = 0.1
     hand_hidden_m: float = 0.12
     causal_window: int = 3
     symmetric_window: int = 5

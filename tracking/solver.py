@@ -57,7 +57,8 @@ def solve_keypoints(
     and cloud projections off. hidden (N,) bool: keypoints out of sight, projected onto the cloud only
     within ``params.hidden_reach`` of the median rest length of it and, with their chain neighbours bend (N, 4)
     int64 (``chain_neighbours``), drawn ``params.hidden_bend`` of the way towards a smooth curve each sweep (a rope
-    is not kinked where nobody sees it). Returns X (N, 3) float64, metres, world frame.
+    is not kinked where nobody sees it), and never onto a point beyond ``1 + params.hidden_stretch`` times its edge
+    from a fixed neighbour (the hand that holds the end next to it). Returns X (N, 3) float64, metres, world frame.
     """
     X = np.array(X0, np.float64, copy=True)
     N = len(X)
@@ -91,8 +92,24 @@ def solve_keypoints(
         params.hidden_reach * float(np.median(rest)) if len(rest) else 0.0,
         np.full((0, 4), -1, np.int64) if bend is None else np.ascontiguousarray(bend, np.int64),
         float(params.hidden_bend),
+        *fixed_neighbours(edges, rest, hard_idx, N, 1.0 + params.hidden_stretch),
     )
     return X
+
+
+def fixed_neighbours(
+    edges: np.ndarray, rest: np.ndarray, fixed: np.ndarray, n: int, stretch: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each of n keypoints' fixed neighbour along edges (E, 2), as its place in fixed ((F,) int64 keypoints), (n,)
+    int64 (-1: none), and how far from it the keypoint may be, m (n,): that edge's rest (E,) m times stretch."""
+    tether, reach = np.full(n, -1, np.int64), np.zeros(n)
+    slot = np.full(n, -1, np.int64)
+    slot[fixed] = np.arange(len(fixed))
+    for a, b in ((0, 1), (1, 0)):
+        sel = (slot[edges[:, b]] >= 0) & (slot[edges[:, a]] < 0)
+        tether[edges[sel, a]] = slot[edges[sel, b]]
+        reach[edges[sel, a]] = stretch * rest[sel]
+    return tether, reach
 
 
 def chain_neighbours(chains: list[np.ndarray], n_keypoints: int) -> np.ndarray:
