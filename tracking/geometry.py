@@ -62,6 +62,19 @@ def project_points(points: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -
     return np.stack([u, v], axis=1), z
 
 
+def pixels_of(
+    points: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, shape: tuple[int, ...]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The pixel each point (N, 3) m world falls in, of an image of ``shape`` (h, w) that K (3, 3) at T_world_cam
+    (4, 4) describes: row (N,) and column (N,) int64 (floored), inside (N,) bool (in front of the camera and in the
+    image; the row and column of the others are out of range) and the depth z (N,) m."""
+    uv, z = project_points(points, K, T_world_cam)
+    h, w = shape[:2]
+    c = np.floor(uv[:, 0]).astype(np.int64)
+    r = np.floor(uv[:, 1]).astype(np.int64)
+    return r, c, (z > 0) & (c >= 0) & (c < w) & (r >= 0) & (r < h), z
+
+
 def gaps_hidden(
     a: np.ndarray, b: np.ndarray, mask: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, skip_m: float,
     samples: int = 16,
@@ -74,11 +87,7 @@ def gaps_hidden(
     t = np.linspace(0.0, 1.0, samples)
     P = a[:, None, :] + t[None, :, None] * (b - a)[:, None, :]  # (G, S, 3)
     far = np.linalg.norm(P - a[:, None, :], axis=2) > skip_m
-    uv, z = project_points(P.reshape(-1, 3), K, T_world_cam)
-    h, w = mask.shape
-    c = np.floor(uv[:, 0]).astype(np.int64)
-    r = np.floor(uv[:, 1]).astype(np.int64)
-    inside = (z > 0) & (c >= 0) & (c < w) & (r >= 0) & (r < h)
+    r, c, inside, _ = pixels_of(P.reshape(-1, 3), K, T_world_cam, mask.shape)
     hid = ~inside
     hid[inside] = mask[r[inside], c[inside]]
     return (hid.reshape(far.shape) | ~far).all(axis=1) & far.any(axis=1)
@@ -91,11 +100,7 @@ def hidden_behind(
     e.g. the arm's pixels; depth (h, w) m measured there, 0 = none; camera K (3, 3) at T_world_cam (4, 4)): on a
     masked pixel and not nearer than its depth less margin_m. Such a point has no cloud of its own; a point well
     in front of the mask's surface (a rope passing before the arm) is seen."""
-    uv, z = project_points(np.asarray(points, np.float64).reshape(-1, 3), K, T_world_cam)
-    h, w = mask.shape
-    c = np.floor(uv[:, 0]).astype(np.int64)
-    r = np.floor(uv[:, 1]).astype(np.int64)
-    inside = (z > 0) & (c >= 0) & (c < w) & (r >= 0) & (r < h)
+    r, c, inside, z = pixels_of(np.asarray(points, np.float64).reshape(-1, 3), K, T_world_cam, mask.shape)
     out = np.zeros(len(z), bool)
     ri, ci = r[inside], c[inside]
     d = depth[ri, ci]

@@ -92,7 +92,8 @@ def solve_keypoints(
         params.hidden_reach * float(np.median(rest)) if len(rest) else 0.0,
         np.full((0, 4), -1, np.int64) if bend is None else np.ascontiguousarray(bend, np.int64),
         float(params.hidden_bend),
-        *fixed_neighbours(edges, rest, hard_idx, N, 1.0 + params.hidden_stretch),
+        *(fixed_neighbours(edges, rest, hard_idx, N, 1.0 + params.hidden_stretch) if hidden is not None
+          else (np.zeros(0, np.int64), np.zeros(0))),  # read for hidden keypoints only
     )
     return X
 
