@@ -256,7 +256,9 @@ def test_killed_worker_is_restarted_and_reported(tmp_path: Path, port: int) -> N
     with Bus(cfg.bus, cfg.station.name) as bus:
         session = Session(cfg, tmp_path, RealClock(), bus=bus, with_worker=True)
         with Background(session, max_seconds=300.0, loop=True) as bg:
-            wait_for(lambda: session.gate is not None and session.gate.accepted > 10, 180, "keypoints from the worker")
+            # 15 accepted before and after the kill: the check at the end counts the frames with keypoints in the
+            # recorded episodes, which may be fewer than the gate accepted (20 of > 20 once, on a loaded machine)
+            wait_for(lambda: session.gate is not None and session.gate.accepted > 15, 180, "keypoints from the worker")
             sup = session.supervisor
             assert sup is not None
             first_pid = sup.proc.proc.pid
@@ -264,7 +266,7 @@ def test_killed_worker_is_restarted_and_reported(tmp_path: Path, port: int) -> N
             accepted = session.gate.accepted
             wait_for(lambda: sup.restarts == 1 and sup.status()["alive"], 180, "the restarted worker")
             assert sup.proc.proc.pid != first_pid
-            wait_for(lambda: session.gate.accepted > accepted + 10, 120, "keypoints from the restarted worker")
+            wait_for(lambda: session.gate.accepted > accepted + 15, 120, "keypoints from the restarted worker")
             health = session.monitor.health()
             assert health["worker"]["restarts"] == 1 and health["worker"]["alive"]
             assert any(i["kind"] == "worker_restart" for i in health["incidents"])
