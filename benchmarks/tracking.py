@@ -183,7 +183,7 @@ def params_for(cfg: Config, obj: ObjectConfig, overrides: dict[str, Any] | None 
     return replace(p, **(overrides or {}))
 
 
-def _arm_inputs(seq: SimSequence) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+def _arm_inputs(seq: SimSequence) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     arms = ArmModel(seq.bases)
     for f in seq.frames:
         yield arms.from_state(f.state)
@@ -197,10 +197,10 @@ def run_pipeline(
     pipe = LivePipeline(params, seq.K, seq.T_world_cam, kind, **pipeline_kw)
     arm_inputs = list(_arm_inputs(seq))
     outs, wall, cpu = [], [], []
-    for f, (V, F, tcp, closed) in zip(seq.frames, arm_inputs, strict=True):
+    for f, (V, F, tcp, closed, rot) in zip(seq.frames, arm_inputs, strict=True):
         depth = f.depth.astype(np.float32) * np.float32(1e-3)
         c0, w0 = time.process_time(), time.perf_counter()
-        out = pipe.process(depth, V, F, tcp, closed)
+        out = pipe.process(depth, V, F, tcp, closed, tcp_rot=rot)
         wall.append(1e3 * (time.perf_counter() - w0))
         cpu.append(1e3 * (time.process_time() - c0))
         outs.append(out)
@@ -289,7 +289,7 @@ def init_consistency(
         obj = object_config(cfg, name, sim)
         seq = simulate(cfg, obj, 0.0, speed, settle_s, frame_times=times)
         pipe = LivePipeline(params_for(cfg, obj), seq.K, seq.T_world_cam, DIMENSION[obj.category])
-        V, F, tcp, closed = ArmModel(seq.bases).from_state(seq.frames[-1].state)
+        V, F, tcp, closed, _ = ArmModel(seq.bases).from_state(seq.frames[-1].state)
         d = [pipe.decimate(f.depth.astype(np.float32) * np.float32(1e-3)) for f in seq.frames]
         pipe.set_reference(d[0])
         arm = pipe.arm_mask(d[-1], V, F)

@@ -78,8 +78,11 @@ def cmd_watch(args: argparse.Namespace) -> int:
     return 0
 
 
-def _arm_geometry(seq: Any, i: int, arms: Any, closed_fingers: bool = True) -> tuple[Any, Any, Any, Any]:
-    """Arm meshes, TCPs and closed flags for frame ``i`` of a dataset (whole arms, or hands at the TCPs).
+def _arm_geometry(
+    seq: Any, i: int, arms: Any, closed_fingers: bool = True
+) -> tuple[Any, Any, Any, Any, Any]:
+    """Arm meshes, TCPs, closed flags and TCP orientations for frame ``i`` of a dataset (whole arms, or hands at
+    the TCPs).
     closed_fingers: where the opening is not recorded, the fingers are also rendered closed."""
     from tdcommon.robot import hand_mesh
 
@@ -93,7 +96,7 @@ def _arm_geometry(seq: Any, i: int, arms: Any, closed_fingers: bool = True) -> t
             a: {"q": q[i], "gripper_width": width[j], "grasped": bool(closed[j]) if closed is not None else False}
             for j, (a, q) in enumerate((("left", seq.q_left), ("right", seq.q_right)))
         }
-        V, F, tcp, c = arms.from_state(state)
+        V, F, tcp, c, rot = arms.from_state(state)
         # an opening that was not recorded: the fingers are masked closed as well as open (the default width)
         extra = [arms.kin[a].finger_meshes(q[i], 0.0) for a, q, w in
                  (("left", seq.q_left, widths[0]), ("right", seq.q_right, widths[1]))
@@ -102,13 +105,14 @@ def _arm_geometry(seq: Any, i: int, arms: Any, closed_fingers: bool = True) -> t
             from tdcommon.meshes import merge_meshes
 
             V, F = merge_meshes([(V, F), *extra])
-        return V, F, tcp, (c if closed is not None else None)
+        return V, F, tcp, (c if closed is not None else None), rot
     if seq.tcp_left is not None and seq.tcp_right is not None:
         vl, fl = hand_mesh(seq.tcp_left[i], width[0])
         vr, fr = hand_mesh(seq.tcp_right[i], width[1])
         tcp = np.stack([seq.tcp_left[i][:3, 3], seq.tcp_right[i][:3, 3]])
-        return np.concatenate([vl, vr]), np.concatenate([fl, fr + len(vl)]), tcp, closed
-    return None, None, None, None
+        rot = np.stack([seq.tcp_left[i][:3, :3], seq.tcp_right[i][:3, :3]])
+        return np.concatenate([vl, vr]), np.concatenate([fl, fr + len(vl)]), tcp, closed, rot
+    return None, None, None, None, None
 
 
 class _Background:
@@ -144,7 +148,8 @@ class _Background:
 class _Pending(NamedTuple):
     """A frame the forward pass left without keypoints, as compact as exact: the decimated depth in its
     recorded units (uint16, converted as ``depth_m`` converts the full image, so the float32 values are the
-    ones the forward pass used), its arm mask bit-packed, the TCPs (G, 3) m and closed flags (G,) bool."""
+    ones the forward pass used), its arm mask bit-packed, the TCPs (G, 3) m, closed flags (G,) bool and TCP
+    orientations (G, 3, 3)."""
 
     depth: np.ndarray
     scale: float
@@ -152,13 +157,14 @@ class _Pending(NamedTuple):
     shape: tuple[int, int]
     tcp: np.ndarray | None
     closed: np.ndarray | None
+    tcp_rot: np.ndarray | None
 
     @staticmethod
     def keep(prepared: Any, depth: np.ndarray, scale: float, stride: int, tcp: np.ndarray | None,
-             closed: np.ndarray | None) -> _Pending:
+             closed: np.ndarray | None, tcp_rot: np.ndarray | None) -> _Pending:
         arm = None if prepared.arm is None else np.packbits(prepared.arm, axis=None)
         dec = np.ascontiguousarray(depth[::stride, ::stride])
-        p = _Pending(dec, scale, arm, prepared.depth.shape, tcp, closed)
+        p = _Pending(dec, scale, arm, prepared.depth.shape, tcp, closed, tcp_rot)
         if dec.dtype.kind not in "ui" or dec.shape != p.shape or not np.array_equal(p.prepared().depth,
                                                                                   prepared.depth):
             p = p._replace(depth=prepared.depth.copy(), scale=1.0)  # not so exact: keep the float32 image
@@ -213,16 +219,16 @@ def track_sequence(
     topology = None
     t_start = time.monotonic()
     for i, frame in enumerate(iter_depth(seq.frames)):  # depth only: tracking reads no colour
-        V, F, tcp, closed = _arm_geometry(seq, i, arms, closed_fingers=kind != "2d")
+        V, F, tcp, closed, rot = _arm_geometry(seq, i, arms, closed_fingers=kind != "2d")
         full = None if pipe.state == "tracking" else frame.depth_m()  # only initialising needs the whole image
         t0 = time.perf_counter()
         if full is None:  # decimate the recorded image, then scale it (the float32 values decimate() gives)
             prepared = pipe.prepare(frame.depth, V, F, depth_scale=frame.depth_scale)
             t_arm = time.perf_counter()
-            out = pipe.process(None, tcp=tcp, gripper_closed=closed, prepared=prepared)
+            out = pipe.process(None, tcp=tcp, gripper_closed=closed, prepared=prepared, tcp_rot=rot)
         else:
             t_arm = None
-            out = pipe.process(full, V, F, tcp, closed)
+            out = pipe.process(full, V, F, tcp, closed, tcp_rot=rot)
         ms.append((time.perf_counter() - t0) * 1e3)
         stages.append({**out.timings_ms, "total": ms[-1]} if t_arm is None else
                       {**out.timings_ms, "arm": (t_arm - t0) * 1e3, "total": ms[-1]})
@@ -235,7 +241,7 @@ def track_sequence(
         raw.append(out.keypoints if same else None)
         grasp.append(out.grasp_idx if same else None)
         if not same:
-            pending[i] = _Pending.keep(out.prepared, frame.depth, frame.depth_scale, pipe.stride, tcp, closed)
+            pending[i] = _Pending.keep(out.prepared, frame.depth, frame.depth_scale, pipe.stride, tcp, closed, rot)
         if same and out.status != "lost":
             abs_mm.append(out.abs_mm)
             cd_mm.append(out.cd_mm)
@@ -256,7 +262,7 @@ def track_sequence(
 
     def frame_input(i: int) -> FrameInput:
         p = pending.pop(i)
-        return FrameInput(None, tcp=p.tcp, closed=p.closed, prepared=p.prepared())
+        return FrameInput(None, tcp=p.tcp, closed=p.closed, prepared=p.prepared(), tcp_rot=p.tcp_rot)
 
     assert pipe.background is not None  # set at initialisation
     filled = fill_missing(raw, grasp, topology, pipe.background,

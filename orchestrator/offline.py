@@ -85,13 +85,13 @@ def track_variants(
         for j, frame in enumerate(seq.frames):
             if max_frames is not None and i >= max_frames:
                 return
-            V, F, tcp, closed = _arm_geometry(seq, j, arms)
+            V, F, tcp, closed, rot = _arm_geometry(seq, j, arms)
             depth = frame.depth_m()
             outs = {}
             for name, v in variants.items():
                 pipe = pipes[name]
                 if v.tracking_params is not None:  # (re-)initialisation with the full method, the solve ablated
                     pipe.tracker.params = v.tracking_params if pipe.tracker.initialised else v.params
-                outs[name] = pipe.process(depth, V, F, tcp, closed)
+                outs[name] = pipe.process(depth, V, F, tcp, closed, tcp_rot=rot)
             yield i, frame, outs, seq
             i += 1

@@ -69,16 +69,20 @@ class ArmModel:
 
         self.kin = {n: PandaKinematics(bases[n]) for n in ("left", "right")}
 
-    def from_state(self, state: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """vertices (V, 3), triangles (F, 3), tcp (2, 3) m world, closed (2,) bool."""
-        meshes, tcp, closed = [], [], []
+    def from_state(
+        self, state: dict[str, Any]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """vertices (V, 3), triangles (F, 3), tcp (2, 3) m world, closed (2,) bool, tcp_rot (2, 3, 3) (TCP frame
+        to world)."""
+        meshes, poses, closed = [], [], []
         for n in ("left", "right"):
             q = np.asarray(state[n]["q"], np.float64)
             meshes.append(self.kin[n].world_meshes(q, float(state[n].get("gripper_width", 0.08))))
-            tcp.append(self.kin[n].tcp_pose(q)[:3, 3])
+            poses.append(self.kin[n].tcp_pose(q))
             closed.append(bool(state[n].get("grasped", False)))
         verts, tris = merge_meshes(meshes)
-        return verts, tris, np.stack(tcp), np.asarray(closed)
+        T = np.stack(poses)
+        return verts, tris, T[:, :3, 3].copy(), np.asarray(closed), T[:, :3, :3].copy()
 
 
 @dataclass
@@ -312,11 +316,11 @@ class Worker:
             self.stats.frames += 1
             self.stats.published += 1
             return
-        V = F = tcp = closed = None
+        V = F = tcp = closed = rot = None
         if state is not None:
-            V, F, tcp, closed = self.arms.from_state(state)
+            V, F, tcp, closed, rot = self.arms.from_state(state)
         before = pipe.state
-        out = pipe.process(frame.depth_m(), V, F, tcp, closed)
+        out = pipe.process(frame.depth_m(), V, F, tcp, closed, tcp_rot=rot)
         if self._reference_gap is not None and pipe.state == "tracking":
             pipe.reference_gap, self._reference_gap = self._reference_gap, None
         if out.status == "init":

@@ -193,3 +193,36 @@ def test_hidden_keypoints_move_with_the_hand_and_do_not_fail_the_frame() -> None
     assert np.allclose(X[0], X0[0] + lift[0])  # held at the TCP
     assert np.all(X[1:4, 2] > 0.008)  # the hidden keypoints followed the hand up (by the edges alone: < 3 mm)
     assert np.abs(X[6:, 2]).max() < 1e-6  # the seen ones stay on the cloud
+
+
+def test_hidden_keypoints_beside_a_held_end_leave_the_hand_the_way_they_were_seen() -> None:
+    from tracking.init import LEAF, Topology
+    from tracking.solver import edge_colouring, hop_neighbours
+
+    K, T = S.default_camera(W, H)
+    N = 11
+    edges = np.stack([np.arange(N - 1), np.arange(1, N)], axis=1)
+    assert hop_neighbours(edges, N, 0, 2).tolist() == [1, 2]
+    assert sorted(hop_neighbours(edges, N, 5, 1).tolist()) == [4, 6]
+    topo = Topology("1d", edges, np.full(N - 1, 0.02), np.array([0, N - 1]), np.array([LEAF, LEAF]),
+                    [np.arange(N)], colours=edge_colouring(edges, N))
+    X0 = np.stack([0.02 * np.arange(N), np.zeros(N), np.zeros(N)], axis=1)
+    xs = np.linspace(0.0, 0.2, 600)
+    seen = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)
+    beyond = seen[xs >= 0.1]  # the hand hides the rope next to it
+    tcp = X0[:1]
+    turned = np.array([[[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]])  # the hand turned 90 deg about z
+    hidden = X0[:, 0] < 0.09
+    ends = {}
+    for rot in (None, np.eye(3)[None]):
+        tr = Tracker(P, K, T)
+        tr.resume(topo, X0, np.array([0]))
+        tr.step(seen, tcp=tcp, hidden=np.zeros(N, bool), tcp_rot=rot)  # all in sight: learnt
+        for _ in range(5):
+            res = tr.step(beyond, tcp=tcp, hidden=hidden, tcp_rot=None if rot is None else turned)
+            assert res.status == TrackStatus.OK
+        ends[rot is None] = res.keypoints
+    assert np.abs(ends[True][1:3, 1]).max() < 1e-3  # positions alone: nothing turns the hidden stretch
+    # with the hand's orientation, the keypoints beside the fingers turn with it (towards (0, 0.02) and (0, 0.04))
+    assert ends[False][1, 1] > 0.005 and ends[False][2, 1] > 0.005
+    assert np.allclose(ends[False][0], tcp[0])

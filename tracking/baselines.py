@@ -90,10 +90,11 @@ class BaselineTracker(Tracker):
         self.method = method
         self.cpd = {"beta_m": cpd_beta_m, "lam": cpd_lambda, "w": cpd_w}
 
-    def step(self, cloud: np.ndarray, tcp: np.ndarray | None = None,
-             gripper_closed: np.ndarray | None = None, hidden: np.ndarray | None = None) -> FrameResult:
+    def step(self, cloud: np.ndarray, tcp: np.ndarray | None = None, gripper_closed: np.ndarray | None = None,
+             hidden: np.ndarray | None = None, tcp_rot: np.ndarray | None = None) -> FrameResult:
         """One frame's segmented cloud (M, 3) m -> the baseline's keypoints, scored like the full method (the
-        keypoints hidden behind the arm, hidden (N,) bool, are the full method's concern: a baseline has none)."""
+        keypoints hidden behind the arm, hidden (N,) bool, and the grippers' orientations tcp_rot (G, 3, 3) are
+        the full method's concern: a baseline reads neither)."""
         early = self._begin_step(cloud, tcp, gripper_closed)
         if early is not None:
             return early

@@ -25,7 +25,8 @@ from tracking.pipeline import LivePipeline, PreparedFrame
 @dataclass(frozen=True)
 class FrameInput:
     """What ``LivePipeline.process`` takes for one frame: depth (H, W) float32 m; both arms as one mesh
-    vertices (V, 3) m world + triangles (F, 3) int (or None); tcp (G, 3) m world and closed (G,) bool.
+    vertices (V, 3) m world + triangles (F, 3) int (or None); tcp (G, 3) m world, closed (G,) bool and tcp_rot
+    (G, 3, 3) the grippers' orientations (optional).
     prepared: the frame's decimated depth and arm mask kept from the forward pass (depth and meshes may
     then be None: a resumed track does not initialise, so it needs neither)."""
 
@@ -35,6 +36,7 @@ class FrameInput:
     tcp: np.ndarray | None = None
     closed: np.ndarray | None = None
     prepared: PreparedFrame | None = None
+    tcp_rot: np.ndarray | None = None
 
 
 @dataclass
@@ -87,7 +89,8 @@ def fill_missing(
         for i in order:
             f = frame(i)
             t0 = time.perf_counter()
-            out = pipe.process(f.depth, f.arm_vertices, f.arm_triangles, f.tcp, f.closed, prepared=f.prepared)
+            out = pipe.process(f.depth, f.arm_vertices, f.arm_triangles, f.tcp, f.closed, prepared=f.prepared,
+                               tcp_rot=f.tcp_rot)
             res.ms.append(1e3 * (time.perf_counter() - t0))
             res.stages.append(out.timings_ms)
             if len(out.keypoints) == N:

@@ -116,6 +116,10 @@ class TrackingParams:
         seen rope's direction into the hand instead of cutting a straight chord; more fights the edge lengths.
       hidden_stretch: nor is such a hidden keypoint projected onto a point farther from a fixed neighbour (the
         held end next to it) than its edge's rest length times 1 + this: the hand hides more rope than one edge.
+      exit_keypoints, exit_stiffness: a 1D keypoint within exit_keypoints edges of a held one and hidden behind
+        the arm is pulled exit_stiffness of the way (a soft anchor) to where it was last seen in that gripper's
+        frame: the fingers clamp the rope, so it leaves them the way it did, in an arc the smoothest curve through
+        the hidden stretch (``hidden_bend``) does not follow. Needs the TCP orientations (``Tracker.step``).
       hand_hidden_m: a 1D object's initial growth towards a gripper that stops short of its TCP is kept when
         it stops within this of the TCP and the rest of the way is hidden behind the arm in the image (a hand,
         whose fingers and body span about this much around its TCP, hides the end it holds), m.
@@ -202,6 +206,8 @@ class TrackingParams:
     hidden_reach: float = 0.5
     hidden_bend: float = 0.1
     hidden_stretch: float = 0.1
+    exit_keypoints: int = 2
+    exit_stiffness: float = 0.2
     hand_hidden_m: float = 0.12
     causal_window: int = 3
     symmetric_window: int = 5

@@ -220,9 +220,11 @@ class LivePipeline:
         tcp: np.ndarray | None = None,
         gripper_closed: np.ndarray | None = None,
         prepared: PreparedFrame | None = None,
+        tcp_rot: np.ndarray | None = None,
     ) -> PipelineOutput:
         """One frame: depth (H, W) float32 m; both arms as one mesh (V, 3) m world + (F, 3) int;
-        tcp (G, 3) m world and gripper_closed (G,) bool of the grippers (G = 2: left, right).
+        tcp (G, 3) m world, tcp_rot (G, 3, 3) (TCP frame to world; optional) and gripper_closed (G,) bool of the
+        grippers (G = 2: left, right).
         prepared: this frame's ``PreparedFrame`` from an earlier ``prepare`` / output (the arm meshes are then
         not needed); depth may then be None unless the pipeline still has to initialise (it re-lifts the
         initial cloud from the full-resolution depth)."""
@@ -243,7 +245,7 @@ class LivePipeline:
             assert full is not None  # checked above
             out = self._try_initialise(depth, arm, tcp, gripper_closed, full)
         else:
-            out = self._track(depth, arm, tcp, gripper_closed)
+            out = self._track(depth, arm, tcp, gripper_closed, tcp_rot)
         if self._prev.maxlen:
             self._prev.append(depth)
         self._timings["total"] = 1e3 * (time.perf_counter() - t0)
@@ -438,7 +440,8 @@ class LivePipeline:
         return self._output("init", res, seg.points)
 
     def _track(
-        self, depth: np.ndarray, arm: np.ndarray | None, tcp: np.ndarray | None, closed: np.ndarray | None
+        self, depth: np.ndarray, arm: np.ndarray | None, tcp: np.ndarray | None, closed: np.ndarray | None,
+        tcp_rot: np.ndarray | None = None,
     ) -> PipelineOutput:
         assert self.background is not None
         t0 = time.perf_counter()
@@ -455,7 +458,7 @@ class LivePipeline:
         # a rope's keypoints behind the arm have no cloud of their own (a cloth's hidden part is held by its grid)
         hidden = None if arm is None or topo.kind != "1d" else hidden_behind(
             X, arm, depth, self.K_seg, self.T, self.params.arm_margin_m)
-        res = self.tracker.step(seg.points, tcp=tcp, gripper_closed=closed, hidden=hidden)
+        res = self.tracker.step(seg.points, tcp=tcp, gripper_closed=closed, hidden=hidden, tcp_rot=tcp_rot)
         self._timings.update(self.tracker.last_timings_ms)
         p = self.params
         n = (p.background_confirm_2d if topo.kind == "2d" else p.background_confirm_1d) - 1

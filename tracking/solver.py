@@ -186,3 +186,18 @@ def centre_on_ridge(
     if on.any():
         along_view[on] = np.nanmedian(z[on], axis=1)
     return X + across[:, None] * lat + along_view[:, None] * dep
+
+
+def hop_neighbours(edges: np.ndarray, n_keypoints: int, start: int, hops: int) -> np.ndarray:
+    """The keypoints (K,) int64 within ``hops`` edges (E, 2) of keypoint ``start``, itself excluded, nearest
+    first (breadth-first over the graph)."""
+    adj = np.zeros((n_keypoints, n_keypoints), bool)
+    adj[edges[:, 0], edges[:, 1]] = adj[edges[:, 1], edges[:, 0]] = True
+    seen = np.zeros(n_keypoints, bool)
+    seen[start] = True
+    front, out = np.array([start]), []
+    for _ in range(hops):
+        front = np.flatnonzero(adj[front].any(axis=0) & ~seen)
+        seen[front] = True
+        out.append(front)
+    return np.concatenate(out) if out else np.zeros(0, np.int64)

@@ -20,7 +20,7 @@ from tracking.kernels import warm_up
 from tracking.metrics import chamfer_mm, edge_rmse_mm
 from tracking.params import TrackingParams
 from tracking.skeleton import LEAF
-from tracking.solver import chain_neighbours, solve_keypoints
+from tracking.solver import chain_neighbours, hop_neighbours, solve_keypoints
 from tracking.tangle import chain_reversals, relift_grid, tangled_cells, unfold_chains
 
 
@@ -167,6 +167,7 @@ def track_frame(
     grasp_idx: np.ndarray | None = None,
     X_pred: np.ndarray | None = None,
     hidden: np.ndarray | None = None,
+    soft: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, int]:
     """One step of Algorithm 2: match anchors, add grasped TCP anchors, solve warm-started from X_prev.
 
@@ -178,6 +179,8 @@ def track_frame(
     ``use_anchors=False`` ablation, which leaves out the re-detected anchors only: the TCPs are the robot's
     inputs, not detections (the paper's ablation, where a rope held at both ends tracks as the full method).
     hidden: (N,) bool keypoints out of sight behind the arm (``solve_keypoints``).
+    soft: more anchors, (K,) int64 keypoints, (K, 3) m positions, (K,) weights in (0, 1), in place of any
+    re-detected anchor of those keypoints (``Tracker.step``: a held rope's exit from the fingers).
     Returns (X (N, 3) float64 m, number of matched anchors).
     """
     ai = topology.anchor_idx
@@ -216,6 +219,10 @@ def track_frame(
         params = replace(params, use_anchors=True)
     aidx = np.concatenate(idx) if idx else np.zeros(0, np.int64)
     apos = np.concatenate(pos) if pos else np.zeros((0, 3))
+    if soft is not None and len(soft[0]):  # in place of a re-detected anchor of the same keypoint
+        keep = ~np.isin(aidx, soft[0])
+        aidx, apos = np.concatenate([aidx[keep], soft[0]]), np.concatenate([apos[keep], soft[1]])
+        weight = np.concatenate([weight[keep], soft[2]])
     X = solve_keypoints(
         X_prev, topology.edges, topology.rest, aidx, apos, cloud, params.track_iterations, params, topology.colours,
         weight, hidden,
@@ -293,6 +300,9 @@ class Tracker:
         self._history.clear()
         self._bad = 0
         self._tcp: np.ndarray | None = None  # the last tracked frame's TCPs (G, 3) m
+        # where each keypoint beside a held one was last seen in its gripper's frame, m:
+        # (gripper, held keypoint, keypoint) -> (3,)
+        self._exit: dict[tuple[int, int, int], np.ndarray] = {}
 
     def initialise(
         self,
@@ -341,15 +351,18 @@ class Tracker:
 
     def step(
         self, cloud: np.ndarray, tcp: np.ndarray | None = None, gripper_closed: np.ndarray | None = None,
-        hidden: np.ndarray | None = None,
+        hidden: np.ndarray | None = None, tcp_rot: np.ndarray | None = None,
     ) -> FrameResult:
-        """Track one frame's segmented cloud (M, 3) m; tcp (G, 3) m and gripper_closed (G,) bool are optional.
+        """Track one frame's segmented cloud (M, 3) m; tcp (G, 3) m and gripper_closed (G,) bool are optional,
+        as are the grippers' orientations tcp_rot (G, 3, 3) (TCP frame to world).
 
         hidden (N,) bool: the keypoints out of sight behind the arm this frame (``tracking.geometry.hidden_behind``).
         They have no cloud of their own: they start from where their nearest TCP's motion since the last frame
         takes them (what a hand hides moves with it), are projected onto the cloud only beside it
         (``params.hidden_reach``), are drawn towards a smooth curve along their chain (``params.hidden_bend``) and
         are left out of the CD that judges the frame, as held keypoints are (the robot places those).
+        With tcp_rot, a hidden keypoint within ``params.exit_keypoints`` edges of a held one is also drawn
+        towards where it was last seen in that gripper's frame (``params.exit_stiffness``).
 
         Grasp indices follow the grippers (regrasp on closing). After ``lost_after_frames`` bad frames
         the status is LOST and the tracker resets: the caller must initialise again.
@@ -379,15 +392,53 @@ class Tracker:
             pred = pred.copy()
             pred[h] = warm[h]
         self._tcp = tcp_now
-        X, matched = track_frame(warm, self.topology, cloud, det, kinds, p, tcp, self.grasp_idx, pred, hidden)
+        rot = None if tcp_rot is None else np.asarray(tcp_rot, np.float64).reshape(-1, 3, 3)
+        exits, soft = self._exits(hidden, tcp_now, rot)
+        if soft is not None:
+            warm = warm.copy()
+            warm[soft[0]] = soft[1]
+        X, matched = track_frame(warm, self.topology, cloud, det, kinds, p, tcp, self.grasp_idx, pred, hidden, soft)
         tangled, repaired = 0, False
         if self.topology.grid_shape is not None:
             X, matched, tangled, repaired = self._untangle(X, matched, cloud, det, kinds, tcp, held)
         elif self.topology.kind == "1d":
-            X, matched, tangled, repaired = self._unfold(X, matched, cloud, det, kinds, tcp, hidden)
+            X, matched, tangled, repaired = self._unfold(X, matched, cloud, det, kinds, tcp, hidden, soft)
+        if rot is not None and tcp_now is not None:
+            for g, k, j in exits:  # learnt where seen
+                if hidden is None or not hidden[j]:
+                    self._exit[g, k, j] = rot[g].T @ (X[j] - tcp_now[g])
         res = self._result(X, cloud, matched, na, tangled=tangled, repaired=repaired, hidden=hidden)
         self.last_timings_ms = {"anchors": 1e3 * (t1 - t0), "solve": 1e3 * (time.perf_counter() - t1)}
         return res
+
+    def _exits(
+        self, hidden: np.ndarray | None, tcp: np.ndarray | None, rot: np.ndarray | None
+    ) -> tuple[list[tuple[int, int, int]], tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
+        """The (gripper, held keypoint, keypoint) triples of a 1D object's keypoints within
+        ``params.exit_keypoints`` edges of a held one (not held themselves), and the soft anchors (keypoints,
+        positions (K, 3) m, weights) of the hidden ones among them at their last seen place in their gripper's
+        frame (tcp (G, 3) m, rot (G, 3, 3)): a held rope leaves the fingers the way it did. What was learnt for
+        a gripper that let go or holds another keypoint now is forgotten."""
+        assert self.topology is not None and self.keypoints is not None
+        g_idx = self.grasp_idx
+        self._exit = {key: v for key, v in self._exit.items() if key[0] < len(g_idx) and g_idx[key[0]] == key[1]}
+        depth = self.params.exit_keypoints
+        if rot is None or tcp is None or self.topology.kind != "1d" or depth <= 0 or len(rot) != len(g_idx):
+            return [], None
+        held = set(g_idx[g_idx >= 0].tolist())
+        exits = [(g, int(k), int(j)) for g, k in enumerate(g_idx) if k >= 0
+                 for j in hop_neighbours(self.topology.edges, len(self.keypoints), int(k), depth)
+                 if int(j) not in held]
+        idx: list[int] = []
+        pos: list[np.ndarray] = []
+        for g, k, j in exits:
+            local = self._exit.get((g, k, j))
+            if hidden is not None and hidden[j] and local is not None and j not in idx:
+                idx.append(j)
+                pos.append(tcp[g] + rot[g] @ local)
+        if not idx:
+            return exits, None
+        return exits, (np.array(idx, np.int64), np.array(pos), np.full(len(idx), self.params.exit_stiffness))
 
     def _untangle(
         self, X: np.ndarray, matched: int, cloud: np.ndarray, det: np.ndarray, kinds: np.ndarray,
@@ -413,6 +464,7 @@ class Tracker:
     def _unfold(
         self, X: np.ndarray, matched: int, cloud: np.ndarray, det: np.ndarray, kinds: np.ndarray,
         tcp: np.ndarray | None, hidden: np.ndarray | None = None,
+        soft: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, int, int, bool]:
         """A 1D solution X (N, 3) m checked for chains folded onto themselves; a folded one is solved again from
         its chains laid out without the fold (``unfold_chains``), kept when fewer keypoints turn back and its
@@ -425,7 +477,7 @@ class Tracker:
         X0 = unfold_chains(X, self.topology, cos_max, self.params.fold_span_min)
         if X0 is None:
             return X, matched, bad, False
-        X2, m2 = track_frame(X0, self.topology, cloud, det, kinds, self.params, tcp, self.grasp_idx, X0, hidden)
+        X2, m2 = track_frame(X0, self.topology, cloud, det, kinds, self.params, tcp, self.grasp_idx, X0, hidden, soft)
         bad2 = len(chain_reversals(X2, self.topology.chains, cos_max))
         edges, rest = self.topology.edges, self.topology.rest
         if bad2 < bad and edge_rmse_mm(X2, edges, rest) <= edge_rmse_mm(X, edges, rest):
