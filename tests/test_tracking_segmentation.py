@@ -539,6 +539,30 @@ def test_tracking_keeps_the_sparse_points_of_a_steep_tube_on_the_object():
     assert len(select_clusters_near(pts, lab, object_now, P, table)) == 400
 
 
+def test_table_noise_joined_to_a_hanging_part_is_kept_only_beside_the_previous_object():
+    # a branch hangs down to 2 cm above the table; the table's noise below its tip (a shadow) joins its cluster
+    # and would extend the tip. A rope lying on the table keeps its table-level points.
+    from tracking.segmentation import dbscan_labels, select_clusters_near
+
+    rng = np.random.default_rng(1)
+    table = (np.array([0.0, 0.0, 1.0]), 0.0)
+    hanging = np.stack([np.zeros(60), np.zeros(60), np.linspace(0.3, 0.02, 60)], axis=1)  # tip 2 cm up
+    trail = np.stack([np.linspace(0.004, 0.12, 25), np.zeros(25), rng.uniform(-0.003, 0.003, 25)], axis=1)
+    pts = np.concatenate([hanging, trail])
+    lab = dbscan_labels(pts, P.dbscan_eps_m, P.dbscan_min_points)
+    assert (lab >= 0).all()  # clusters (near the hanging part), not noise
+    kept = select_clusters_near(pts, lab, hanging[::5], P, table)
+    d = np.linalg.norm(trail[:, None] - hanging[None, ::5], axis=2).min(axis=1)
+    assert len(kept) == 60 + int((d < P.track_attach_m).sum()) < len(pts)
+    assert np.abs(kept[:, 0]).max() < P.track_attach_m + 0.02
+    # without the table plane (none measured) nothing changes
+    assert len(select_clusters_near(pts, lab, hanging[::5], P)) == len(pts)
+    # a rope lying on the table, where it lay a frame ago: all of it stays
+    lying = np.stack([np.linspace(0.0, 0.4, 100), rng.uniform(-0.004, 0.004, 100), rng.uniform(0.0, 0.008, 100)], 1)
+    lab2 = dbscan_labels(lying, P.dbscan_eps_m, P.dbscan_min_points)
+    assert len(select_clusters_near(lying, lab2, lying[::3] + [0.005, 0.0, 0.0], P, table)) == 100
+
+
 def test_gaps_hidden_only_when_the_mask_covers_the_way_beyond_the_start() -> None:
     K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
     T = np.eye(4)  # camera at the origin looking along +z: (x, y, 1 m) is seen at pixel (320 + 500 x, 240 + 500 y)

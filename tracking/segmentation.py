@@ -364,7 +364,11 @@ def select_clusters_near(
     kept too: a tube steep to the image plane lifts to points several pixel footprints apart along it, too
     sparse for DBSCAN. Next to a covered part such points are the sensor's flying pixels, and stay out; so
     do those less than ``attach_min_height_m`` above the ``support`` plane (normal (3,), offset m: the
-    table, whose noise an object lying on it would otherwise gather frame after frame)."""
+    table, whose noise an object lying on it would otherwise gather frame after frame). The points of the kept
+    clusters near the table (within ``attach_min_height_m`` of it either way) are kept only within
+    ``track_attach_m`` of the previous object: the table's noise (a shadow's, where stereo matching is poor)
+    joins the cluster of a part hanging above it and extends its tips, while an object lying on the table
+    stays within that of where it lay."""
     ok = labels >= 0
     if len(keypoints) == 0 or len(points) == 0:
         return np.zeros((0, 3))
@@ -372,13 +376,17 @@ def select_clusters_near(
     near = _clusters_near(points, labels, big, keypoints, params.track_gate_m)
     keep = np.zeros(len(points), bool)
     keep[ok] = near[labels[ok]]
+    ref = keypoints if samples is None else samples
+    if support is not None and params.track_attach_m > 0:
+        low = np.flatnonzero(keep & (np.abs(points @ support[0] - support[1]) < params.attach_min_height_m))
+        if len(low):
+            keep[low[~_near(points[low], ref, params.track_attach_m)]] = False
     loose = ~keep
     loose[ok] &= ~big[labels[ok]]
     if support is not None:
         loose &= points_above_support(points, support, params.attach_min_height_m)
     if params.track_attach_m <= 0 or not loose.any():
         return points[keep]
-    ref = keypoints if samples is None else samples
     attach = params.track_attach_m
     # the left-out points near the object at all, and the parts of the object near them: only these parts'
     # coverage by the kept clusters (the kept points beside them) can decide anything
