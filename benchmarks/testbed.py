@@ -105,6 +105,17 @@ VARIANTS: list[dict[str, Any]] = [
          branch_len=0.24, radius=0.006, rgb=[0.2, 0.6, 0.9]),
     dict(name="bdlo_slow_obl2_s85", obj="bdlo", speed="slow", seconds=5, seed=85, camera=OBLIQUE_RIGHT, length=0.9,
          branch_len=0.2),
+    dict(name="rope_fast_obl2_s91", obj="rope", speed="fast", seconds=5, seed=91, camera=OBLIQUE_RIGHT, length=0.9,
+         radius=0.005, rgb=[0.3, 0.7, 0.3]),
+    dict(name="bdlo_medium_side_s92", obj="bdlo", speed="medium", seconds=5, seed=92, camera=SIDE, branch_len=0.22),
+    dict(name="rope_slow_above_s93", obj="rope", speed="slow", seconds=5, seed=93, camera=ABOVE, length=0.85,
+         radius=0.006, rgb=[0.8, 0.4, 0.4]),
+    dict(name="bdlo_fast_obl_s94", obj="bdlo", speed="fast", seconds=5, seed=94, camera=OBLIQUE, length=0.95,
+         branch_len=0.26, radius=0.0055),
+    dict(name="rope_medium_high_s95", obj="rope", speed="medium", seconds=5, seed=95, camera=HIGH_FRONT, length=1.0,
+         radius=0.0045),
+    dict(name="rope_medium_front_s96", obj="rope", speed="medium", seconds=5, seed=96, camera=FRONT_LOW, length=0.8,
+         radius=0.0065, rgb=[0.9, 0.9, 0.9]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
