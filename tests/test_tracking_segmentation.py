@@ -539,9 +539,9 @@ def test_tracking_keeps_the_sparse_points_of_a_steep_tube_on_the_object():
     assert len(select_clusters_near(pts, lab, object_now, P, table)) == 400
 
 
-def test_table_noise_joined_to_a_hanging_part_is_kept_only_beside_the_previous_object():
+def test_table_level_points_go_but_a_flat_objects_beside_where_it_lay():
     # a branch hangs down to 2 cm above the table; the table's noise below its tip (a shadow) joins its cluster
-    # and would extend the tip. A rope lying on the table keeps its table-level points.
+    # and would extend the tip. A cloth lying on the table keeps its table-level points.
     from tracking.segmentation import dbscan_labels, select_clusters_near
 
     rng = np.random.default_rng(1)
@@ -557,10 +557,15 @@ def test_table_noise_joined_to_a_hanging_part_is_kept_only_beside_the_previous_o
     assert np.abs(kept[:, 0]).max() < P.track_attach_m + 0.02
     # without the table plane (none measured) nothing changes
     assert len(select_clusters_near(pts, lab, hanging[::5], P)) == len(pts)
-    # a rope lying on the table, where it lay a frame ago: all of it stays
-    lying = np.stack([np.linspace(0.0, 0.4, 100), rng.uniform(-0.004, 0.004, 100), rng.uniform(0.0, 0.008, 100)], 1)
+    # a tube's (not flat) table-level points all go: noise, or the sides of one whose top stands above the table
+    tube = select_clusters_near(pts, lab, hanging[::5], P, table, flat=False)
+    np.testing.assert_array_equal(tube, hanging[hanging[:, 2] >= P.attach_min_height_m])
+    # a flat object (a cloth) lying on the table, where it lay a frame ago: all of it stays
+    gx, gy = np.meshgrid(np.arange(0.0, 0.3, 0.008), np.arange(0.0, 0.2, 0.008))
+    lying = np.stack([gx.ravel(), gy.ravel(), rng.uniform(0.0, 0.003, gx.size)], axis=1)
     lab2 = dbscan_labels(lying, P.dbscan_eps_m, P.dbscan_min_points)
-    assert len(select_clusters_near(lying, lab2, lying[::3] + [0.005, 0.0, 0.0], P, table)) == 100
+    assert len(select_clusters_near(lying, lab2, lying[::3] + [0.005, 0.0, 0.0], P, table)) == len(lying)
+    assert len(select_clusters_near(lying, lab2, lying[::3], P, table, flat=False)) == 0
 
 
 def test_gaps_hidden_only_when_the_mask_covers_the_way_beyond_the_start() -> None:

@@ -45,7 +45,7 @@ class TrackingParams:
         object in front of it counts as changed (0: such pixels stay unknown), m.
       track_gate_m: in tracking, a cluster is kept if some point lies within this of the previous keypoints, m.
       track_attach_m: in tracking, points DBSCAN leaves out are kept within this of the parts of the
-        previous object the kept clusters do not cover, and points of kept clusters less than
+        previous object the kept clusters do not cover, and a cloth's points of kept clusters less than
         attach_min_height_m above the table only within this of the previous object (``select_clusters_near``), m.
       background_object_gap_m: a farther reading is absorbed into the background only if its 3D
         point lies more than this from the tracked object (last cloud, keypoint edges): else it is

@@ -451,7 +451,8 @@ class LivePipeline:
         thr = change_threshold(self.background, self.seg_params)  # one per frame, for the three tests below
         behind = behind_near_object(depth, self.background, self.seg_params, samples, self.K_seg, self.T, arm, thr)
         seg = segment_against_background(
-            depth, self.background, self.K_seg, self.T, self.seg_params, arm, X, behind, self._support, samples, thr
+            depth, self.background, self.K_seg, self.T, self.seg_params, arm, X, behind, self._support, samples, thr,
+            flat=topo.kind == "2d",
         )
         self._timings["segment"] = 1e3 * (time.perf_counter() - t0)
         topology = self.tracker.topology

@@ -354,7 +354,7 @@ def _clusters_near(
 
 def select_clusters_near(
     points: np.ndarray, labels: np.ndarray, keypoints: np.ndarray, params: TrackingParams,
-    support: tuple[np.ndarray, float] | None = None, samples: np.ndarray | None = None,
+    support: tuple[np.ndarray, float] | None = None, samples: np.ndarray | None = None, flat: bool = True,
 ) -> np.ndarray:
     """Clusters with a point within ``track_gate_m`` of the previous keypoints (N, 3) -> (M, 3) float64, m.
 
@@ -364,11 +364,12 @@ def select_clusters_near(
     kept too: a tube steep to the image plane lifts to points several pixel footprints apart along it, too
     sparse for DBSCAN. Next to a covered part such points are the sensor's flying pixels, and stay out; so
     do those less than ``attach_min_height_m`` above the ``support`` plane (normal (3,), offset m: the
-    table, whose noise an object lying on it would otherwise gather frame after frame). The points of the kept
-    clusters near the table (within ``attach_min_height_m`` of it either way) are kept only within
-    ``track_attach_m`` of the previous object: the table's noise (a shadow's, where stereo matching is poor)
-    joins the cluster of a part hanging above it and extends its tips, while an object lying on the table
-    stays within that of where it lay."""
+    table, whose noise an object lying on it would otherwise gather frame after frame). Nor are the points of
+    the kept clusters near the table (within ``attach_min_height_m`` of it either way): the table's noise (a
+    shadow's, where stereo matching is poor) joins the cluster of a part hanging or lying above it and extends
+    its tips, and a rope or branch lying there shows its top, a diameter above the table. An object that can
+    lie ``flat`` on the table (a cloth, a millimetre or two thick) keeps them within ``track_attach_m`` of
+    the previous object: it stays within that of where it lay."""
     ok = labels >= 0
     if len(keypoints) == 0 or len(points) == 0:
         return np.zeros((0, 3))
@@ -377,10 +378,11 @@ def select_clusters_near(
     keep = np.zeros(len(points), bool)
     keep[ok] = near[labels[ok]]
     ref = keypoints if samples is None else samples
-    if support is not None and params.track_attach_m > 0:
+    if support is not None:
         low = np.flatnonzero(keep & (np.abs(points @ support[0] - support[1]) < params.attach_min_height_m))
-        if len(low):
-            keep[low[~_near(points[low], ref, params.track_attach_m)]] = False
+        if len(low) and flat:
+            low = low[~_near(points[low], ref, params.track_attach_m)]
+        keep[low] = False
     loose = ~keep
     loose[ok] &= ~big[labels[ok]]
     if support is not None:
@@ -412,9 +414,11 @@ def _cluster(
     prev_keypoints: np.ndarray | None,
     support: tuple[np.ndarray, float] | None = None,
     samples: np.ndarray | None = None,
+    flat: bool = True,
 ) -> Segmentation:
     """Lift foreground (H, W) bool pixels, voxelise, DBSCAN and select the object clusters
-    (``select_clusters_near`` with prev_keypoints, the table plane ``support`` and ``samples``, else the largest)."""
+    (``select_clusters_near`` with prev_keypoints, the table plane ``support``, ``samples`` and ``flat``, else the
+    largest)."""
     s = max(1, params.lift_stride)
     sub = np.zeros_like(fg)
     sub[::s, ::s] = fg[::s, ::s]
@@ -425,7 +429,7 @@ def _cluster(
     if prev_keypoints is None:
         obj = select_largest_clusters(vox, labels, params)
     else:
-        obj = select_clusters_near(vox, labels, prev_keypoints, params, support, samples)
+        obj = select_clusters_near(vox, labels, prev_keypoints, params, support, samples, flat)
     return Segmentation(obj, len(pts), n_clusters)
 
 
@@ -978,6 +982,7 @@ def segment_against_background(
     support: tuple[np.ndarray, float] | None = None,
     samples: np.ndarray | None = None,
     thr: np.ndarray | None = None,
+    flat: bool = True,
 ) -> Segmentation:
     """Per-frame segmentation: pixels in front of the background minus arms, clustered.
 
@@ -985,9 +990,10 @@ def segment_against_background(
     them are kept (all of them: an object split by a gripper stays whole), else the largest.
     extra: (H, W) bool pixels known to be object as well (``behind_near_object``). support: the table plane
     (``support_plane``), samples: (S, 3) m points along the previous object (``select_clusters_near``).
-    thr: ``change_threshold(background)`` when the caller has it.
+    thr: ``change_threshold(background)`` when the caller has it. flat: the object can lie flat on the table
+    (``select_clusters_near``).
     """
     fg = foreground_mask(depth, background, params, arm_mask, thr)
     if extra is not None:
         fg |= extra
-    return _cluster(depth, fg, K, T_world_cam, params, prev_keypoints, support, samples)
+    return _cluster(depth, fg, K, T_world_cam, params, prev_keypoints, support, samples, flat)
