@@ -116,6 +116,14 @@ VARIANTS: list[dict[str, Any]] = [
          radius=0.0045),
     dict(name="rope_medium_front_s96", obj="rope", speed="medium", seconds=5, seed=96, camera=FRONT_LOW, length=0.8,
          radius=0.0065, rgb=[0.9, 0.9, 0.9]),
+    dict(name="rope_fast_s101", obj="rope", speed="fast", seconds=5, seed=101, length=0.95, radius=0.0055,
+         rgb=[0.9, 0.5, 0.1]),
+    dict(name="bdlo_slow_s102", obj="bdlo", speed="slow", seconds=5, seed=102, branch_len=0.27),
+    dict(name="cloth_fast_s103", obj="cloth", speed="fast", seconds=5, seed=103),
+    dict(name="cloth_medium_s104", obj="cloth", speed="medium", seconds=5, seed=104),
+    dict(name="rope_medium_samecolor_s105", obj="rope", speed="medium", seconds=5, seed=105, samecolor=True),
+    dict(name="bdlo_medium_high_s106", obj="bdlo", speed="medium", seconds=5, seed=106, camera=HIGH_FRONT, length=0.85,
+         branch_len=0.23),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
