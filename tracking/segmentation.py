@@ -364,12 +364,12 @@ def select_clusters_near(
     kept too: a tube steep to the image plane lifts to points several pixel footprints apart along it, too
     sparse for DBSCAN. Next to a covered part such points are the sensor's flying pixels, and stay out; so
     do those less than ``attach_min_height_m`` above the ``support`` plane (normal (3,), offset m: the
-    table, whose noise an object lying on it would otherwise gather frame after frame). Nor are the points of
-    the kept clusters near the table (within ``attach_min_height_m`` of it either way): the table's noise (a
-    shadow's, where stereo matching is poor) joins the cluster of a part hanging or lying above it and extends
-    its tips, and a rope or branch lying there shows its top, a diameter above the table. An object that can
-    lie ``flat`` on the table (a cloth, a millimetre or two thick) keeps them within ``track_attach_m`` of
-    the previous object: it stays within that of where it lay."""
+    table, whose noise an object lying on it would otherwise gather frame after frame). The points of the kept
+    clusters near the table (within ``attach_min_height_m`` of it either way) stay out too: the table's noise
+    (a shadow's, where stereo matching is poor) joins the cluster of a part hanging or lying above it and
+    extends its tips, and a rope or branch lying there shows its top, a diameter above the table. An object
+    that can lie ``flat`` on the table (a cloth, a millimetre or two thick) keeps those within
+    ``track_attach_m`` of the previous object: it stays within that of where it lay."""
     ok = labels >= 0
     if len(keypoints) == 0 or len(points) == 0:
         return np.zeros((0, 3))
