@@ -378,15 +378,16 @@ def select_clusters_near(
     keep = np.zeros(len(points), bool)
     keep[ok] = near[labels[ok]]
     ref = keypoints if samples is None else samples
-    if support is not None:
-        low = np.flatnonzero(keep & (np.abs(points @ support[0] - support[1]) < params.attach_min_height_m))
+    height = None if support is None else points @ support[0] - support[1]  # m above the table
+    if height is not None:
+        low = np.flatnonzero(keep & (np.abs(height) < params.attach_min_height_m))
         if len(low) and flat:
             low = low[~_near(points[low], ref, params.track_attach_m)]
         keep[low] = False
     loose = ~keep
     loose[ok] &= ~big[labels[ok]]
-    if support is not None:
-        loose &= points_above_support(points, support, params.attach_min_height_m)
+    if height is not None:
+        loose &= height >= params.attach_min_height_m  # as points_above_support
     if params.track_attach_m <= 0 or not loose.any():
         return points[keep]
     attach = params.track_attach_m
