@@ -426,14 +426,12 @@ class LivePipeline:
                 self.tracker.reset()
                 return self._empty("waiting", n, "waiting: the segmented object does not reach every closed gripper")
         bg = background_from_depths(refs)
-        # where the object stood still in every reference the background is unknown, not the object
-        # (a 1D object: the initialised cloud, whose full-resolution growth found thin parts the decimated one
-        # missed, and every pixel whose background reading lies on it)
-        one_d = self.tracker.topology is not None and self.tracker.topology.kind == "1d"
-        obj = cloud if one_d else seg.points
-        bg[unchanged_object_pixels(depth, bg, obj, self.K_seg, self.T, self.seg_params, one_d)] = 0.0
+        # where the object stood still in every reference the background is unknown, not the object: every
+        # pixel whose background reading lies on the initialised cloud (a 1D object's full-resolution growth
+        # found thin parts the decimated segmentation missed; a cloth's completion, its still hem)
+        bg[unchanged_object_pixels(depth, bg, cloud, self.K_seg, self.T, self.seg_params, by_background=True)] = 0.0
         # the object's pixels behind the references (moving away) are object, not revealed background
-        keep = behind_near_object(depth, bg, self.seg_params, obj, self.K_seg, self.T, arm)
+        keep = behind_near_object(depth, bg, self.seg_params, cloud, self.K_seg, self.T, arm)
         self.background = update_background(bg, depth, self.seg_params, arm, keep=keep)
         self._sizes.clear()
         self._grasp_rejections = 0
