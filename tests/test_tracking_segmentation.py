@@ -598,3 +598,6 @@ def test_hidden_behind_the_mask_unless_well_in_front_of_it() -> None:
     ])
     got = hidden_behind(pts, mask, depth, K, T, margin_m=0.02)
     assert got.tolist() == [False, True, True, False, True, False]
+    # without a mask, behind whatever the depth shows: the first point is behind the surface left of the arm too
+    got = hidden_behind(pts, None, depth, K, T, margin_m=0.02)
+    assert got.tolist() == [True, True, True, False, True, False]

@@ -226,3 +226,41 @@ def test_hidden_keypoints_beside_a_held_end_leave_the_hand_the_way_they_were_see
     # with the hand's orientation, the keypoints beside the fingers turn with it (towards (0, 0.02) and (0, 0.04))
     assert ends[False][1, 1] > 0.005 and ends[False][2, 1] > 0.005
     assert np.allclose(ends[False][0], tcp[0])
+
+
+def test_a_cloths_keypoints_behind_its_near_layer_stay_off_it() -> None:
+    """A cloth folded over itself, or turned edge-on: the keypoints under the near layer have no cloud of their own
+    (the depth shows the near layer in front of them); projected onto it they would leave the far layer and fold the
+    grid onto the strip that is seen. LivePipeline marks them hidden for a 2D object, so only the edges move them."""
+    from tdcommon.meshes import sheet_mesh
+    from tracking.anchors import boundary_indices
+    from tracking.init import Topology, grid_topology
+    from tracking.pipeline import LivePipeline
+    from tracking.solver import edge_colouring
+
+    def sheet(x: tuple[float, float], y: tuple[float, float], z: float, rows: int, cols: int) -> np.ndarray:
+        """(rows, cols, 3) m: a flat sheet at height z over x, y (m)."""
+        a, b = np.meshgrid(np.linspace(*x, cols), np.linspace(*y, rows))
+        return np.stack([a, b, np.full_like(a, z)], axis=-1)
+
+    K, T = S.default_camera(W, H)
+    rng = np.random.default_rng(0)
+    R = C = 6
+    X0 = sheet((-0.15, 0.15), (-0.15, 0.15), 0.12, R, C).reshape(-1, 3)  # keypoints on the far layer
+    edges, _ = grid_topology(R, C, 0.0, 0.0)
+    rest = np.linalg.norm(X0[edges[:, 0]] - X0[edges[:, 1]], axis=1)
+    bi, bk = boundary_indices(R, C)
+    topo = Topology("2d", edges, rest, bi, bk, [np.arange(r * C, (r + 1) * C) for r in range(R)], (R, C),
+                    edge_colouring(edges, R * C))
+    far = sheet((-0.15, 0.15), (-0.15, 0.15), 0.12, 41, 41)
+    near = sheet((-0.2, 0.2), (0.04, 0.2), 0.17, 17, 41)  # 5 cm above the far half
+    bg = S.render_depth([S.table_mesh()], K, T, (H, W), rng=rng)
+    depth = S.render_depth([S.table_mesh(), sheet_mesh(far), sheet_mesh(near)], K, T, (H, W), rng=rng)
+    pipe = LivePipeline(P, K, T, "2d")
+    pipe.resume(topo, X0, np.full(2, -1, np.int64), pipe.decimate(bg))
+    out = pipe.process(depth)
+    assert out.status in ("tracking", "degraded") and len(out.keypoints) == R * C
+    under = X0[:, 1] > 0.06  # well under the near layer (from this camera, in front of and above the cloth)
+    assert under.sum() >= 6
+    assert np.abs(out.keypoints[under, 2] - 0.12).max() < 0.015  # not pulled up onto the near layer 5 cm above
+    assert np.abs(out.keypoints[~under & (X0[:, 1] < -0.02), 2] - 0.12).max() < 0.005  # the seen ones stay on it

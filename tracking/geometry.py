@@ -94,17 +94,19 @@ def gaps_hidden(
 
 
 def hidden_behind(
-    points: np.ndarray, mask: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, margin_m: float,
+    points: np.ndarray, mask: np.ndarray | None, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray,
+    margin_m: float,
 ) -> np.ndarray:
     """(N,) bool: which points (N, 3) m world lie out of sight behind what a masked pixel shows (mask (h, w) bool,
-    e.g. the arm's pixels; depth (h, w) m measured there, 0 = none; camera K (3, 3) at T_world_cam (4, 4)): on a
-    masked pixel and not nearer than its depth less margin_m. Such a point has no cloud of its own; a point well
-    in front of the mask's surface (a rope passing before the arm) is seen."""
-    r, c, inside, z = pixels_of(np.asarray(points, np.float64).reshape(-1, 3), K, T_world_cam, mask.shape)
+    e.g. the arm's pixels, None: every pixel; depth (h, w) m measured there, 0 = none; camera K (3, 3) at
+    T_world_cam (4, 4)): on a masked pixel and not nearer than its depth less margin_m. Such a point has no cloud
+    of its own; a point well in front of the measured surface (a rope passing before the arm) is seen."""
+    r, c, inside, z = pixels_of(np.asarray(points, np.float64).reshape(-1, 3), K, T_world_cam, depth.shape)
     out = np.zeros(len(z), bool)
     ri, ci = r[inside], c[inside]
     d = depth[ri, ci]
-    out[inside] = mask[ri, ci] & ((d <= 0) | (z[inside] > d - margin_m))
+    behind = (d <= 0) | (z[inside] > d - margin_m)
+    out[inside] = behind if mask is None else mask[ri, ci] & behind
     return out
 
 

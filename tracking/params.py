@@ -108,11 +108,13 @@ class TrackingParams:
         sight, e.g. a branch hanging towards the camera, and spacing the chain on what is seen compresses it).
       grasp_gate_m: a TCP farther than this from every keypoint holds nothing, m (a hand hides the few
         centimetres of a held rope between its fingers: the end seen nearest to a TCP lies up to ~7 cm from it).
-      hidden_reach: a 1D keypoint hidden behind the arm in the image (``tracking.geometry.hidden_behind``) is
+      hidden_reach: a keypoint out of sight (``tracking.geometry.hidden_behind``: a 1D one behind the arm, a
+        cloth's behind whatever the depth shows in front of it, the arm or the cloth's own near layer) is
         projected onto the cloud only when its nearest point lies within this fraction of the median edge rest
         length (the rope just beside the fingers); farther, the cloud it would be pulled onto is another part of
-        the object, and the edges, its grasp and its hand's motion place it instead.
-      hidden_bend: each solver sweep, such a hidden keypoint moves this fraction of the way to where its chain
+        the object (a cloth turned edge-on: its near strip), and the edges, its grasp and its hand's motion
+        place it instead.
+      hidden_bend: each solver sweep, such a hidden 1D keypoint moves this fraction of the way to where its chain
         runs smoothest (least second differences over two neighbours each side): the hidden stretch continues the
         seen rope's direction into the hand instead of cutting a straight chord; more fights the edge lengths.
       hidden_stretch: nor is such a hidden keypoint projected onto a point farther from a fixed neighbour (the

@@ -454,9 +454,13 @@ class LivePipeline:
         )
         self._timings["segment"] = 1e3 * (time.perf_counter() - t0)
         topology = self.tracker.topology
-        # a rope's keypoints behind the arm have no cloud of their own (a cloth's hidden part is held by its grid)
-        hidden = None if arm is None or topo.kind != "1d" else hidden_behind(
-            X, arm, depth, self.K_seg, self.T, self.params.arm_margin_m)
+        # keypoints out of sight have no cloud of their own: a rope's behind the arm, a cloth's behind whatever the
+        # depth shows in front of them (the arm, or the cloth's own near layer where it folds or turns edge-on)
+        hidden = None
+        if topo.kind == "2d":
+            hidden = hidden_behind(X, None, depth, self.K_seg, self.T, self.params.arm_margin_m)
+        elif arm is not None:
+            hidden = hidden_behind(X, arm, depth, self.K_seg, self.T, self.params.arm_margin_m)
         res = self.tracker.step(seg.points, tcp=tcp, gripper_closed=closed, hidden=hidden, tcp_rot=tcp_rot)
         self._timings.update(self.tracker.last_timings_ms)
         p = self.params

@@ -356,10 +356,11 @@ class Tracker:
         """Track one frame's segmented cloud (M, 3) m; tcp (G, 3) m and gripper_closed (G,) bool are optional,
         as are the grippers' orientations tcp_rot (G, 3, 3) (TCP frame to world).
 
-        hidden (N,) bool: the keypoints out of sight behind the arm this frame (``tracking.geometry.hidden_behind``).
-        They have no cloud of their own: they start from where their nearest TCP's motion since the last frame
-        takes them (what a hand hides moves with it), are projected onto the cloud only beside it
-        (``params.hidden_reach``), are drawn towards a smooth curve along their chain (``params.hidden_bend``) and
+        hidden (N,) bool: the keypoints out of sight this frame (``tracking.geometry.hidden_behind``: behind the
+        arm; a cloth's also behind its own near layer). They have no cloud of their own: they start from where
+        their nearest TCP's motion since the last frame takes them (what a hand hides moves with it), are projected
+        onto the cloud only beside it (``params.hidden_reach``), are drawn towards a smooth curve along their chain
+        (a 1D object's, ``params.hidden_bend``) and
         are left out of the CD that judges the frame, as held keypoints are (the robot places those).
         With tcp_rot, a hidden keypoint within ``params.exit_keypoints`` edges of a held one is also drawn
         towards where it was last seen in that gripper's frame (``params.exit_stiffness``).
