@@ -264,3 +264,36 @@ def test_a_cloths_keypoints_behind_its_near_layer_stay_off_it() -> None:
     assert under.sum() >= 6
     assert np.abs(out.keypoints[under, 2] - 0.12).max() < 0.015  # not pulled up onto the near layer 5 cm above
     assert np.abs(out.keypoints[~under & (X0[:, 1] < -0.02), 2] - 0.12).max() < 0.005  # the seen ones stay on it
+
+
+def test_a_held_corners_hidden_neighbours_keep_their_place_in_the_grippers_frame() -> None:
+    """A cloth's held corner is clamped like a rope's end: its grid neighbours (one edge away), hidden behind the
+    hand, are drawn to where they were last seen in the gripper's frame; the rest of the grid is left to the cloud."""
+    from tracking.anchors import boundary_indices
+    from tracking.init import Topology, grid_topology
+    from tracking.solver import edge_colouring
+
+    K, T = S.default_camera(W, H)
+    R = C = 6
+    a, b = np.meshgrid(np.linspace(0.0, 0.25, C), np.linspace(0.0, 0.25, R))
+    X0 = np.stack([a, b, np.zeros_like(a)], axis=-1).reshape(-1, 3)
+    edges, _ = grid_topology(R, C, 0.0, 0.0)
+    bi, bk = boundary_indices(R, C)
+    topo = Topology("2d", edges, np.full(len(edges), 0.05), bi, bk, [np.arange(r * C, (r + 1) * C) for r in range(R)],
+                    (R, C), edge_colouring(edges, R * C))
+    u, v = np.meshgrid(np.linspace(0.0, 0.25, 101), np.linspace(0.0, 0.25, 101))
+    sheet = np.stack([u.ravel(), v.ravel(), np.zeros(u.size)], axis=1)
+    beyond = sheet[np.hypot(sheet[:, 0], sheet[:, 1]) > 0.065]  # the hand hides the cloth around the held corner
+    tcp = X0[:1]
+    tilted = np.array([[[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]])  # the hand turned 90 deg about x
+    hidden = np.hypot(X0[:, 0], X0[:, 1]) < 0.065
+    assert sorted(np.flatnonzero(hidden).tolist()) == [0, 1, 6]
+    tr = Tracker(P, K, T)
+    tr.resume(topo, X0, np.array([0]))
+    tr.step(sheet, tcp=tcp, hidden=np.zeros(R * C, bool), tcp_rot=np.eye(3)[None])  # all in sight: learnt
+    assert sorted(j for _, _, j in tr._exits(None, tcp, np.eye(3)[None])[0]) == [1, 6]  # one edge away only
+    for _ in range(5):
+        res = tr.step(beyond, tcp=tcp, hidden=hidden, tcp_rot=tilted)
+    X = res.keypoints
+    assert X[6, 2] > 0.01  # the neighbour along y turned up with the hand (towards (0, 0, 0.05))
+    assert np.allclose(X[0], tcp[0]) and np.abs(X[~hidden, 2]).max() < 0.005  # the rest stays on the cloud

@@ -123,6 +123,8 @@ class TrackingParams:
         the arm is pulled exit_stiffness of the way (a soft anchor) to where it was last seen in that gripper's
         frame: the fingers clamp the rope, so it leaves them the way it did, in an arc the smoothest curve through
         the hidden stretch (``hidden_bend``) does not follow. Needs the TCP orientations (``Tracker.step``).
+      exit_keypoints_2d: the same for a cloth, whose held corner the fingers clamp too: its grid neighbours one
+        edge away (two edges take in the cell's far corner, which the cloth's drape moves: measured worse).
       hand_hidden_m: a 1D object's initial growth towards a gripper that stops short of its TCP is kept when
         it stops within this of the TCP and the rest of the way is hidden behind the arm in the image (a hand,
         whose fingers and body span about this much around its TCP, hides the end it holds), m.
@@ -210,6 +212,7 @@ class TrackingParams:
     hidden_bend: float = 0.1
     hidden_stretch: float = 0.1
     exit_keypoints: int = 2
+    exit_keypoints_2d: int = 1
     exit_stiffness: float = 0.2
     hand_hidden_m: float = 0.12
     causal_window: int = 3

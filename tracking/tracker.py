@@ -360,10 +360,10 @@ class Tracker:
         arm; a cloth's also behind its own near layer). They have no cloud of their own: they start from where
         their nearest TCP's motion since the last frame takes them (what a hand hides moves with it), are projected
         onto the cloud only beside it (``params.hidden_reach``), are drawn towards a smooth curve along their chain
-        (a 1D object's, ``params.hidden_bend``) and
-        are left out of the CD that judges the frame, as held keypoints are (the robot places those).
-        With tcp_rot, a hidden keypoint within ``params.exit_keypoints`` edges of a held one is also drawn
-        towards where it was last seen in that gripper's frame (``params.exit_stiffness``).
+        (a 1D object's, ``params.hidden_bend``) and are left out of the CD that judges the frame, as held
+        keypoints are (the robot places those). With tcp_rot, a hidden keypoint within ``params.exit_keypoints``
+        (a cloth's: ``exit_keypoints_2d``) edges of a held one is also drawn towards where it was last seen in that
+        gripper's frame (``params.exit_stiffness``).
 
         Grasp indices follow the grippers (regrasp on closing). After ``lost_after_frames`` bad frames
         the status is LOST and the tracker resets: the caller must initialise again.
@@ -415,16 +415,16 @@ class Tracker:
     def _exits(
         self, hidden: np.ndarray | None, tcp: np.ndarray | None, rot: np.ndarray | None
     ) -> tuple[list[tuple[int, int, int]], tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
-        """The (gripper, held keypoint, keypoint) triples of a 1D object's keypoints within
-        ``params.exit_keypoints`` edges of a held one (not held themselves), and the soft anchors (keypoints,
-        positions (K, 3) m, weights) of the hidden ones among them at their last seen place in their gripper's
-        frame (tcp (G, 3) m, rot (G, 3, 3)): a held rope leaves the fingers the way it did. What was learnt for
-        a gripper that let go or holds another keypoint now is forgotten."""
+        """The (gripper, held keypoint, keypoint) triples of the keypoints within ``params.exit_keypoints``
+        edges of a held one (a cloth's: ``exit_keypoints_2d``; not held themselves), and the soft anchors
+        (keypoints, positions (K, 3) m, weights) of the hidden ones among them at their last seen place in their
+        gripper's frame (tcp (G, 3) m, rot (G, 3, 3)): a held rope leaves the fingers the way it did, a held
+        corner's cloth too. What was learnt for a gripper that let go or holds another keypoint now is forgotten."""
         assert self.topology is not None and self.keypoints is not None
         g_idx = self.grasp_idx
         self._exit = {key: v for key, v in self._exit.items() if key[0] < len(g_idx) and g_idx[key[0]] == key[1]}
-        depth = self.params.exit_keypoints
-        if rot is None or tcp is None or self.topology.kind != "1d" or depth <= 0 or len(rot) != len(g_idx):
+        depth = self.params.exit_keypoints if self.topology.kind == "1d" else self.params.exit_keypoints_2d
+        if rot is None or tcp is None or depth <= 0 or len(rot) != len(g_idx):
             return [], None
         held = set(g_idx[g_idx >= 0].tolist())
         exits = [(g, int(k), int(j)) for g, k in enumerate(g_idx) if k >= 0
