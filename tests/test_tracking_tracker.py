@@ -233,10 +233,8 @@ def test_a_cloths_keypoints_behind_its_near_layer_stay_off_it() -> None:
     (the depth shows the near layer in front of them); projected onto it they would leave the far layer and fold the
     grid onto the strip that is seen. LivePipeline marks them hidden for a 2D object, so only the edges move them."""
     from tdcommon.meshes import sheet_mesh
-    from tracking.anchors import boundary_indices
-    from tracking.init import Topology, grid_topology
+    from tracking.init import cloth_topology
     from tracking.pipeline import LivePipeline
-    from tracking.solver import edge_colouring
 
     def sheet(x: tuple[float, float], y: tuple[float, float], z: float, rows: int, cols: int) -> np.ndarray:
         """(rows, cols, 3) m: a flat sheet at height z over x, y (m)."""
@@ -247,11 +245,7 @@ def test_a_cloths_keypoints_behind_its_near_layer_stay_off_it() -> None:
     rng = np.random.default_rng(0)
     R = C = 6
     X0 = sheet((-0.15, 0.15), (-0.15, 0.15), 0.12, R, C).reshape(-1, 3)  # keypoints on the far layer
-    edges, _ = grid_topology(R, C, 0.0, 0.0)
-    rest = np.linalg.norm(X0[edges[:, 0]] - X0[edges[:, 1]], axis=1)
-    bi, bk = boundary_indices(R, C)
-    topo = Topology("2d", edges, rest, bi, bk, [np.arange(r * C, (r + 1) * C) for r in range(R)], (R, C),
-                    edge_colouring(edges, R * C))
+    topo = cloth_topology(X0, R, C)
     far = sheet((-0.15, 0.15), (-0.15, 0.15), 0.12, 41, 41)
     near = sheet((-0.2, 0.2), (0.04, 0.2), 0.17, 17, 41)  # 5 cm above the far half
     bg = S.render_depth([S.table_mesh()], K, T, (H, W), rng=rng)
@@ -269,18 +263,13 @@ def test_a_cloths_keypoints_behind_its_near_layer_stay_off_it() -> None:
 def test_a_held_corners_hidden_neighbours_keep_their_place_in_the_grippers_frame() -> None:
     """A cloth's held corner is clamped like a rope's end: its grid neighbours (one edge away), hidden behind the
     hand, are drawn to where they were last seen in the gripper's frame; the rest of the grid is left to the cloud."""
-    from tracking.anchors import boundary_indices
-    from tracking.init import Topology, grid_topology
-    from tracking.solver import edge_colouring
+    from tracking.init import cloth_topology
 
     K, T = S.default_camera(W, H)
     R = C = 6
     a, b = np.meshgrid(np.linspace(0.0, 0.25, C), np.linspace(0.0, 0.25, R))
     X0 = np.stack([a, b, np.zeros_like(a)], axis=-1).reshape(-1, 3)
-    edges, _ = grid_topology(R, C, 0.0, 0.0)
-    bi, bk = boundary_indices(R, C)
-    topo = Topology("2d", edges, np.full(len(edges), 0.05), bi, bk, [np.arange(r * C, (r + 1) * C) for r in range(R)],
-                    (R, C), edge_colouring(edges, R * C))
+    topo = cloth_topology(X0, R, C)  # 5 cm edges
     u, v = np.meshgrid(np.linspace(0.0, 0.25, 101), np.linspace(0.0, 0.25, 101))
     sheet = np.stack([u.ravel(), v.ravel(), np.zeros(u.size)], axis=1)
     beyond = sheet[np.hypot(sheet[:, 0], sheet[:, 1]) > 0.065]  # the hand hides the cloth around the held corner

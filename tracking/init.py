@@ -307,13 +307,19 @@ def initialise_2d(
         r, k = linear_sum_assignment(cost)
         ok = cost[r, k] <= params.grasp_gate_m
         X0[corners[k[ok]]] = hp[r[ok]]
-    E, _ = grid_topology(R, C, 0.0, 0.0)
-    rest = edge_lengths(X0, E)
-    bi, bk = boundary_indices(R, C)
-    chains = [np.arange(r * C, (r + 1) * C) for r in range(R)]
-    topo = Topology("2d", E, rest, bi, bk, chains, (R, C), edge_colouring(E, R * C))
-    Xs = solve_keypoints(X0, E, rest, bi, X0[bi], cloud, params.init_iterations, params, topo.colours)
+    topo = cloth_topology(X0, R, C)
+    bi = topo.anchor_idx
+    Xs = solve_keypoints(X0, topo.edges, topo.rest, bi, X0[bi], cloud, params.init_iterations, params, topo.colours)
     return Initialisation(Xs, topo, obj)
+
+
+def cloth_topology(X: np.ndarray, rows: int, cols: int) -> Topology:
+    """The 2D topology of a rows x cols grid of keypoints X (rows * cols, 3) m, row-major: 4-neighbour edges with
+    their lengths in X as rest lengths, the boundary nodes as anchors (corners, sides), the rows as chains."""
+    E, _ = grid_topology(rows, cols, 0.0, 0.0)
+    bi, bk = boundary_indices(rows, cols)
+    chains = [np.arange(r * cols, (r + 1) * cols) for r in range(rows)]
+    return Topology("2d", E, edge_lengths(X, E), bi, bk, chains, (rows, cols), edge_colouring(E, rows * cols))
 
 
 def initialise(

@@ -178,9 +178,9 @@ def track_frame(
     Keypoints held by a gripper (grasp_idx >= 0) are fixed at that gripper's TCP (G, 3) m, also in the
     ``use_anchors=False`` ablation, which leaves out the re-detected anchors only: the TCPs are the robot's
     inputs, not detections (the paper's ablation, where a rope held at both ends tracks as the full method).
-    hidden: (N,) bool keypoints out of sight behind the arm (``solve_keypoints``).
+    hidden: (N,) bool keypoints out of sight (``solve_keypoints``; ``Tracker.step``).
     soft: more anchors, (K,) int64 keypoints, (K, 3) m positions, (K,) weights in (0, 1), in place of any
-    re-detected anchor of those keypoints (``Tracker.step``: a held rope's exit from the fingers).
+    re-detected anchor of those keypoints (``Tracker.step``: where a held end or corner leaves the fingers).
     Returns (X (N, 3) float64 m, number of matched anchors).
     """
     ai = topology.anchor_idx
