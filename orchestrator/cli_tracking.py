@@ -78,12 +78,10 @@ def cmd_watch(args: argparse.Namespace) -> int:
     return 0
 
 
-def _arm_geometry(
-    seq: Any, i: int, arms: Any, closed_fingers: bool = True
-) -> tuple[Any, Any, Any, Any, Any]:
+def _arm_geometry(seq: Any, i: int, arms: Any) -> tuple[Any, Any, Any, Any, Any]:
     """Arm meshes, TCPs, closed flags and TCP orientations for frame ``i`` of a dataset (whole arms, or hands at
-    the TCPs).
-    closed_fingers: where the opening is not recorded, the fingers are also rendered closed."""
+    the TCPs). Where the opening is not recorded, the fingers are rendered closed as well as open: closed on a
+    rope or a cloth's corner, they hide what they hold, and their pads are not the object."""
     from tdcommon.robot import hand_mesh
 
     closed = None
@@ -100,7 +98,7 @@ def _arm_geometry(
         # an opening that was not recorded: the fingers are masked closed as well as open (the default width)
         extra = [arms.kin[a].finger_meshes(q[i], 0.0) for a, q, w in
                  (("left", seq.q_left, widths[0]), ("right", seq.q_right, widths[1]))
-                 if closed_fingers and (w is None or not np.isfinite(w[i]))]
+                 if w is None or not np.isfinite(w[i])]
         if extra:
             from tdcommon.meshes import merge_meshes
 
@@ -219,7 +217,7 @@ def track_sequence(
     topology = None
     t_start = time.monotonic()
     for i, frame in enumerate(iter_depth(seq.frames)):  # depth only: tracking reads no colour
-        V, F, tcp, closed, rot = _arm_geometry(seq, i, arms, closed_fingers=kind != "2d")
+        V, F, tcp, closed, rot = _arm_geometry(seq, i, arms)
         full = None if pipe.state == "tracking" else frame.depth_m()  # only initialising needs the whole image
         t0 = time.perf_counter()
         if full is None:  # decimate the recorded image, then scale it (the float32 values decimate() gives)
