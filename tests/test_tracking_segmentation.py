@@ -598,6 +598,9 @@ def test_hidden_behind_the_mask_unless_well_in_front_of_it() -> None:
     ])
     got = hidden_behind(pts, mask, depth, K, T, margin_m=0.02)
     assert got.tolist() == [False, True, True, False, True, False]
-    # without a mask, behind whatever the depth shows: the first point is behind the surface left of the arm too
+    # without a mask, behind whatever the depth shows by more than the margin: the first point is behind the surface
+    # left of the arm too; the one touching the surface is on it, seen
     got = hidden_behind(pts, None, depth, K, T, margin_m=0.02)
-    assert got.tolist() == [True, True, True, False, True, False]
+    assert got.tolist() == [True, True, False, False, True, False]
+    on = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.015], [0.0, 0.0, 1.03]])  # on the surface, within, beyond the margin
+    assert hidden_behind(on, None, depth, K, T, margin_m=0.02).tolist() == [False, False, True]

@@ -97,16 +97,20 @@ def hidden_behind(
     points: np.ndarray, mask: np.ndarray | None, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray,
     margin_m: float,
 ) -> np.ndarray:
-    """(N,) bool: which points (N, 3) m world lie out of sight behind what a masked pixel shows (mask (h, w) bool,
-    e.g. the arm's pixels, None: every pixel; depth (h, w) m measured there, 0 = none; camera K (3, 3) at
-    T_world_cam (4, 4)): on a masked pixel and not nearer than its depth less margin_m. Such a point has no cloud
-    of its own; a point well in front of the measured surface (a rope passing before the arm) is seen."""
+    """(N,) bool: which points (N, 3) m world lie out of sight (depth (h, w) m, 0 = no reading; camera K (3, 3) at
+    T_world_cam (4, 4)). With a mask (h, w) bool of what hides them (the arm's pixels): a point on a masked pixel and
+    not nearer than its depth less margin_m (touching the arm, between the fingers, counts); a point well in front
+    (a rope passing before the arm) is seen. Without one (mask None): a point whose pixel shows a surface more than
+    margin_m in front of it (a cloth's own near layer, or the arm), or no reading; a point on the surface is seen.
+    Such a point has no cloud of its own."""
     r, c, inside, z = pixels_of(np.asarray(points, np.float64).reshape(-1, 3), K, T_world_cam, depth.shape)
     out = np.zeros(len(z), bool)
     ri, ci = r[inside], c[inside]
     d = depth[ri, ci]
-    behind = (d <= 0) | (z[inside] > d - margin_m)
-    out[inside] = behind if mask is None else mask[ri, ci] & behind
+    if mask is None:
+        out[inside] = (d <= 0) | (z[inside] > d + margin_m)
+    else:
+        out[inside] = mask[ri, ci] & ((d <= 0) | (z[inside] > d - margin_m))
     return out
 
 
