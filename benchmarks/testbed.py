@@ -32,7 +32,7 @@ which ``trackdeform eval`` cannot show on sequences without ground truth.
 
 The default set (``--set all``) is the five-sequence development set plus the variants below (camera
 from the side and from above, rope lengths 0.8-1.0 m, radii 4-7 mm, colours, the three speeds, other
-seeds; 29 sequences); generating it the first time takes 45-100 min and ~5 GB (1.5-3.5 min a sequence on this
+seeds; 46 sequences); generating it the first time takes 70-160 min and ~8 GB (1.5-3.5 min a sequence on this
 2-core machine), tracking and scoring it ~8 min here.
 """
 
@@ -124,6 +124,11 @@ VARIANTS: list[dict[str, Any]] = [
     dict(name="rope_medium_samecolor_s105", obj="rope", speed="medium", seconds=5, seed=105, samecolor=True),
     dict(name="bdlo_medium_high_s106", obj="bdlo", speed="medium", seconds=5, seed=106, camera=HIGH_FRONT, length=0.85,
          branch_len=0.23),
+    dict(name="cloth_slow_side_s111", obj="cloth", speed="slow", seconds=5, seed=111, camera=SIDE),
+    dict(name="cloth_fast_high_s112", obj="cloth", speed="fast", seconds=5, seed=112, camera=HIGH_FRONT),
+    dict(name="cloth_medium_front_s113", obj="cloth", speed="medium", seconds=5, seed=113, camera=FRONT_LOW),
+    dict(name="cloth_medium_above_s114", obj="cloth", speed="medium", seconds=5, seed=114, camera=ABOVE),
+    dict(name="cloth_fast_obl_s115", obj="cloth", speed="fast", seconds=5, seed=115, camera=OBLIQUE),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
