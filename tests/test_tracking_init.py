@@ -172,6 +172,24 @@ def test_refine_corners_is_steady_under_contour_jitter() -> None:
     assert (spread < 0.7).all(), spread
 
 
+def test_refine_corners_finds_a_sagging_sides_corners() -> None:
+    """A hanging cloth's bottom side sags between its corners: lines fitted to the middles of its sides meet away
+    from the corners; the contour turns at them."""
+    from tracking.anchors import refine_corners
+
+    t = np.linspace(0.0, 1.0, 400, endpoint=False)
+    top = np.stack([200.0 * t, np.zeros_like(t)], axis=1)
+    right = np.stack([np.full_like(t, 200.0), 150.0 * t], axis=1)
+    bottom = np.stack([200.0 * (1 - t), 150.0 + 60.0 * np.sin(np.pi * t)], axis=1)  # sags 60 px in the middle
+    left = np.stack([np.zeros_like(t), 150.0 * (1 - t)], axis=1)
+    c = np.rint(np.concatenate([top, right, bottom, left]))  # clockwise on screen, whole pixels
+    true = np.array([0, 400, 800, 1200])
+    start = true + np.array([0, 25, -30, 30])  # a rectangle's corners land off them along the contour
+    out = refine_corners(c, start, np.array([True, False, False, False]))
+    assert out[0] == start[0]  # held
+    assert np.linalg.norm(c[out[1:]] - c[true[1:]], axis=1).max() < 3.0, c[out]
+
+
 def test_lift_pixels_is_the_median_of_the_near_cloud_points() -> None:
     """The compiled lift against a KD-tree query and numpy's nanmedian: up to k cloud points whose pixels lie
     closer than the radius, else the nearest one (pixels far from every cloud pixel)."""

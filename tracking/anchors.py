@@ -227,49 +227,63 @@ def _polyline_length(p: np.ndarray) -> float:
 
 
 def refine_corners(
-    c: np.ndarray, ci: np.ndarray, fixed: np.ndarray, inner: float = 0.2, smooth: int = 5
+    c: np.ndarray, ci: np.ndarray, fixed: np.ndarray, inner: float = 0.2, smooth: int = 5, scale: float = 0.15,
+    flat: float = 0.05,
 ) -> np.ndarray:
-    """Free corners of a closed contour c (M, 2) px moved to where the contour crosses the bisector of their two sides.
+    """Free corners of a closed contour c (M, 2) px moved to where the contour turns, then onto the bisector of
+    the two sides there.
 
     ci: (4,) increasing contour indices of the corners; fixed: (4,) bool corners left alone (held).
-    Each side between corners is fitted with a line over its middle (``inner`` of its samples cut
-    at both ends); a free corner becomes the contour point, searched within the outer ``inner`` of
-    each side, nearest the bisector of its two sides' lines through their meeting point. On a
-    rounded or curled corner the nearest contour point to the minimum-area rectangle's corner, or
-    to the lines' meeting point, is a flat minimum that slides along the arc with a pixel of
-    contour jitter (6 mm, then 2.7 mm spread over camera seeds); a line across the arc is crossed
-    at one place. Returns (4,) contour indices.
+    A free corner is searched within the outer ``inner`` of each of its two sides (in samples). The turn at a
+    contour point is the angle between the chords to the points ``scale`` of the shorter side's length before
+    and after it along the contour (smoothed over ``smooth`` samples); at the sharpest turn (the weighted middle
+    of the points turning within ``flat`` in cosine of the sharpest), lines are fitted to the contour one to
+    three such lengths before and after it, and the corner becomes the window's point nearest the bisector of
+    those lines through their meeting point. A cloth's sides are curves where it sags
+    or curls, and its corners are where its boundary turns: the minimum-area rectangle's corners, or lines
+    fitted to the middles of curved sides, meet away from them (a hanging cloth's bottom corners 20-50 mm off).
+    On a rounded corner the turn is flat along the arc and slides with a pixel of contour jitter; the nearest
+    point to the lines' meeting point is a flat minimum too; the bisector crosses the arc at one place.
+    Lengths are along the contour, so its sampling does not matter. Returns (4,) contour indices.
     """
     M = len(c)
     ci = np.asarray(ci, np.int64)
     span = np.diff(np.append(ci, ci[0] + M))  # side k runs ci[k] -> ci[k+1], span[k] samples
-    lines = []
-    for k in range(4):
-        a = int(round(inner * span[k]))
-        idx = (ci[k] + np.arange(a, span[k] - a + 1)) % M
-        lines.append(_fit_line(c[idx]) if len(idx) >= 3 else None)
     h = max(1, smooth // 2)
     kern = np.ones(2 * h + 1) / (2 * h + 1)
     cs = np.stack([np.convolve(np.concatenate([c[-h:, i], c[:, i], c[:h, i]]), kern, "valid") for i in range(2)], 1)
+    cs3 = np.concatenate([cs, cs, cs])  # unwrapped three times: index i + M is sample i
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(cs3, axis=0), axis=1))])
+    side = arc[ci + span + M] - arc[ci + M]  # (4,) side k's length along the contour, px
+
+    def at(a: np.ndarray) -> np.ndarray:
+        """Contour points (K, 2) at arc positions a (K,) px."""
+        return np.stack([np.interp(a, arc, cs3[:, i]) for i in range(2)], axis=1)
+
     out = ci.copy()
-    for k in range(4):
-        prev, nxt = lines[k - 1], lines[k]
-        if fixed[k] or prev is None or nxt is None:
+    for k in np.flatnonzero(~np.asarray(fixed, bool)):
+        lo, hi = int(round(inner * span[k - 1])), int(round(inner * span[k]))
+        window = ci[k] + np.arange(-lo, hi + 1) + M
+        L = scale * min(side[k - 1], side[k])
+        if L <= 0:
             continue
-        (p0, d0), (p1, d1) = prev, nxt
+        a = cs3[window] - at(arc[window] - L)
+        b = at(arc[window] + L) - cs3[window]
+        cos = (a * b).sum(axis=1) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-12)
+        weight = np.maximum(cos.min() + flat - cos, 0.0)  # the sharpest points: a rounded corner's arc is flat
+        j = int(window[int(round((weight * np.arange(len(window))).sum() / weight.sum()))])
+        out[k] = j % M
+        (p0, d0), (p1, d1) = (_fit_line(at(arc[j] + sgn * np.linspace(L, 3 * L, 9))) for sgn in (-1.0, 1.0))
         A = np.stack([d0, -d1], axis=1)
         if abs(np.linalg.det(A)) < 0.3:  # sides nearly parallel: no meeting point to trust
             continue
-        t = np.linalg.solve(A, p1 - p0)
-        x = p0 + t[0] * d0
-        q = c[ci[k]]
-        d0 = d0 if (q - p0) @ d0 > 0 else -d0  # along the previous side, into the corner
-        d1 = d1 if (p1 - q) @ d1 > 0 else -d1  # along the next side, out of it
-        b = (d0 - d1) / np.linalg.norm(d0 - d1)  # the corner's outward bisector
-        lo, hi = int(round(inner * span[k - 1])), int(round(inner * span[k]))
-        window = (ci[k] + np.arange(-lo, hi + 1)) % M
-        r = cs[window] - x
-        out[k] = window[int(np.argmin(np.abs(r[:, 0] * b[1] - r[:, 1] * b[0])))]
+        x = p0 + np.linalg.solve(A, p1 - p0)[0] * d0
+        q = cs3[j]
+        d0 = d0 if (q - p0) @ d0 > 0 else -d0  # along the side before, into the corner
+        d1 = d1 if (p1 - q) @ d1 > 0 else -d1  # along the side after, out of it
+        bis = (d0 - d1) / max(float(np.linalg.norm(d0 - d1)), 1e-12)  # the corner's outward bisector
+        r = cs3[window] - x
+        out[k] = window[int(np.argmin(np.abs(r[:, 0] * bis[1] - r[:, 1] * bis[0])))] % M
     return out
 
 
