@@ -604,3 +604,25 @@ def test_hidden_behind_the_mask_unless_well_in_front_of_it() -> None:
     assert got.tolist() == [True, True, False, False, True, False]
     on = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.015], [0.0, 0.0, 1.03]])  # on the surface, within, beyond the margin
     assert hidden_behind(on, None, depth, K, T, margin_m=0.02).tolist() == [False, False, True]
+
+
+def test_tracking_regains_a_hanging_part_its_background_holds():
+    # the tube's lower part hung where it is now in the reference: the background there is the tube itself, and
+    # only its upper part (moved since) stands out of it; the thin part continuous with it is grown back
+    from tracking.segmentation import complete_thin_parts, support_plane
+
+    K, T, c, table, depth = _steep_tube((180, 240))
+    top = c[:40]
+    ref = S.render_depth(
+        [S.table_mesh(), tube_mesh(c[38:], 0.006), tube_mesh(top + [0.04, 0.0, 0.0], 0.006)], K, T, (180, 240),
+        rng=np.random.default_rng(5),
+    )
+    seg = segment_against_background(depth, ref, K, T, P, None, c[::8])
+    assert cKDTree(seg.points).query(c[-10:])[0].min() > 0.03  # the lower part is background
+    out = complete_thin_parts(depth, seg, K, T, P, None, support_plane(table, K, T, P))
+    d, _ = cKDTree(c).query(out.points)
+    assert (d < 0.006 + 0.01).all()  # the tube only
+    assert cKDTree(out.points).query(c[-10:])[0].min() < 0.015  # its far end is regained
+    off = complete_thin_parts(depth, seg, K, T, TrackingParams(track_attach_iterations=0), None,
+                              support_plane(table, K, T, P))
+    assert off is seg

@@ -40,6 +40,9 @@ class TrackingParams:
         a camera above). An end dragged along the
         table (reach 0: off). attach_iterations:
         how many times the growth may repeat while a holding gripper's TCP is not reached.
+      track_attach_iterations: in tracking, a 1D object's segmentation is grown so too, up to this many times
+        a frame (``complete_thin_parts``; 0: off): a part where the object stood in the references is its own
+        background there and is regained only by its continuity with what is seen.
       no_return_open_m: a region of the references without a reading in any of them and wider than
         this at 1 m is empty space beyond the sensor's range: its background is depth_max_m, so an
         object in front of it counts as changed (0: such pixels stay unknown), m.
@@ -163,6 +166,7 @@ class TrackingParams:
     attach_plane_tol_m: float = 0.004
     attach_plane_min_fraction: float = 0.3
     attach_min_height_m: float = 0.005
+    track_attach_iterations: int = 10
     no_return_open_m: float = 0.02
     track_gate_m: float = 0.05
     track_attach_m: float = 0.025

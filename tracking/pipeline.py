@@ -27,6 +27,7 @@ from tracking.segmentation import (
     background_from_depths,
     behind_near_object,
     change_threshold,
+    complete_thin_parts,
     far_where_no_return,
     grow_attached_tubes,
     refine_object_cloud,
@@ -452,6 +453,8 @@ class LivePipeline:
             depth, self.background, self.K_seg, self.T, self.seg_params, arm, X, behind, self._support, samples, thr,
             flat=topo.kind == "2d",
         )
+        if topo.kind == "1d":
+            seg = complete_thin_parts(depth, seg, self.K_seg, self.T, self.seg_params, arm, self._support)
         self._timings["segment"] = 1e3 * (time.perf_counter() - t0)
         topology = self.tracker.topology
         # keypoints out of sight have no cloud of their own: a rope's behind the arm, a cloth's behind whatever the

@@ -22,7 +22,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from tracking.geometry import depth_to_points, pixel_mask
+from tracking.geometry import depth_to_points, pixel_mask, project_points
 from tracking.kernels import dbscan, near_any, voxel_centroids, zbuffer_triangles
 from tracking.params import TrackingParams
 
@@ -743,6 +743,48 @@ def grow_attached_tubes(
     d, _ = tree.query(extra, distance_upper_bound=0.5 * params.voxel_m)
     extra = extra[~np.isfinite(d)]  # voxels the difference cloud already has stay as they were
     return Segmentation(np.concatenate([seg.points, extra]), seg.n_foreground + int(accepted.sum()), seg.n_clusters)
+
+
+def complete_thin_parts(
+    depth: np.ndarray,
+    seg: Segmentation,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    params: TrackingParams,
+    arm_mask: np.ndarray | None = None,
+    support: tuple[np.ndarray, float] | None = None,
+) -> Segmentation:
+    """A 1D object's tracking segmentation of depth (H, W) m grown over its thin parts (``grow_attached_tubes``,
+    up to ``track_attach_iterations`` times, each within ``attach_reach_m`` of what it has and taking parts of a
+    single pixel: a tube steep to the image plane gains a row of one or two pixels a step).
+
+    Where the object stood in the references, the background holds the object itself: a branch swinging back
+    to where it hung reads within the change threshold of that background, or behind it, and is missing from
+    the foreground (its lower third, 5-10 cm, for a dozen frames at a time). It is still a thin tube
+    depth-continuous with the part that is seen. Each growth runs on the crop of the image it can reach (the
+    cloud's pixels and ``attach_reach_m`` around them). Returns the input when nothing is added."""
+    H, W = depth.shape
+    for _ in range(max(0, params.track_attach_iterations)):
+        uv, z = project_points(seg.points, K, T_world_cam)
+        front = z > 1e-6
+        if not front.any():
+            break
+        px_m = float(np.median(z[front])) / float(K[0, 0])
+        pad = int(np.ceil(params.attach_reach_m / px_m)) + int(np.ceil(params.voxel_m / px_m)) + 2
+        lo = np.maximum(np.floor(uv[front].min(axis=0)).astype(int) - pad, 0)
+        hi = np.minimum(np.ceil(uv[front].max(axis=0)).astype(int) + pad + 1, [W, H])
+        if (hi <= lo).any():
+            break
+        crop = np.s_[lo[1]:hi[1], lo[0]:hi[0]]
+        Kc = K.astype(np.float64).copy()
+        Kc[0, 2] -= lo[0]
+        Kc[1, 2] -= lo[1]
+        arm = None if arm_mask is None else arm_mask[crop]
+        grown = grow_attached_tubes(depth[crop], seg, Kc, T_world_cam, params, arm, support, min_part_px=1)
+        if len(grown.points) == len(seg.points):
+            break
+        seg = grown
+    return seg
 
 
 def refine_object_cloud(
