@@ -10,7 +10,14 @@ from tracking import synthetic as S
 from tracking.init import Topology, initialise
 from tracking.params import TrackingParams
 from tracking.segmentation import background_from_depths, segment_against_background
-from tracking.tangle import chain_reversals, grid_symmetries, relift_grid, tangled_cells, unfold_chains
+from tracking.tangle import (
+    chain_reversals,
+    grid_symmetries,
+    relift_chains,
+    relift_grid,
+    tangled_cells,
+    unfold_chains,
+)
 from tracking.tracker import Tracker
 
 W, H = 640, 480
@@ -151,3 +158,36 @@ def test_tracker_unfolds_a_folded_rope_and_reports_it() -> None:
     assert res.repaired and res.tangled == 0
     assert len(chain_reversals(res.keypoints, tr.topology.chains, P.fold_cos)) == 0
     assert np.linalg.norm(res.keypoints - ok.keypoints, axis=1).max() < 0.01
+
+
+def test_relifted_chains_keep_a_branched_ropes_keypoint_order() -> None:
+    # a Y-shaped rope on the table, tracked; then one branch's keypoints folded back onto the junction (a branch
+    # lost behind the rest of the rope and seen again): laid out again along the skeleton, each keypoint where it
+    # was, and the tracker takes that repair
+    from tdcommon.meshes import tube_mesh
+
+    K, T = S.default_camera(W, H)
+    br = S.y_rope_branches()
+    depth = S.render_depth([S.table_mesh()] + [tube_mesh(b, 0.006) for b in br], K, T, (H, W))
+    bg = S.render_depth([S.table_mesh()], K, T, (H, W))
+    cloud = segment_against_background(depth, bg, K, T, P).points
+    tr = Tracker(P, K, T)
+    tr.initialise(cloud, kind="1d")
+    ok = tr.step(cloud)
+    topo = tr.topology
+    assert topo is not None and len(topo.chains) == 3
+    chain = max(topo.chains, key=len)
+    j, free = int(chain[0]), chain[1:]  # a chain from the junction (or a leaf) on
+    folded = ok.keypoints.copy()
+    back = ok.keypoints[free[::-1]]  # the chain's keypoints in reverse order, squeezed towards its start
+    folded[free] = ok.keypoints[j] + 0.4 * (back - ok.keypoints[j])
+    X = relift_chains(folded, topo, cloud, K, T, P)
+    assert X is not None
+    assert np.linalg.norm(X - ok.keypoints, axis=1).max() < 0.02
+    # a straight rope's skeleton has one branch, not the Y's three: no re-lift
+    rope = S.render_depth([S.table_mesh(), tube_mesh(br[0], 0.006)], K, T, (H, W))
+    assert relift_chains(folded, topo, segment_against_background(rope, bg, K, T, P).points, K, T, P) is None
+    tr.keypoints = folded
+    res = tr.step(cloud)
+    assert res.repaired
+    assert np.linalg.norm(res.keypoints - ok.keypoints, axis=1).max() < 0.02

@@ -16,10 +16,12 @@ most ~57 degrees at a keypoint over the test bed's rope clips; a folded chain tu
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from tracking.anchors import contour_3d, lift_grid
+from tracking.anchors import contour_3d, lift_grid, skeleton_3d
 from tracking.init import Topology
 from tracking.metrics import edge_lengths
 from tracking.params import TrackingParams
@@ -139,4 +141,74 @@ def unfold_chains(X: np.ndarray, topology: Topology, cos_max: float, min_span: f
     return out if changed else None
 
 
-__all__ = ["cell_corner_normals", "chain_reversals", "grid_symmetries", "relift_grid", "tangled_cells", "unfold_chains"]
+def _arc(poly: np.ndarray) -> np.ndarray:
+    """Cumulative arc length (M,) m of a polyline (M, 3) m."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poly, axis=0), axis=1))])
+
+
+def relift_chains(
+    X_prev: np.ndarray,
+    topology: Topology,
+    cloud: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    params: TrackingParams,
+    held: dict[int, np.ndarray] | None = None,
+) -> np.ndarray | None:
+    """Fresh chains (N, 3) m on the cloud (M, 3) m, laid like the track's X_prev (N, 3) m: a 1D object's
+    skeleton (as at initialisation) whose leaves and junctions match the track's anchors one to one, each
+    skeleton branch joining the two nodes a chain of the track joins.
+
+    Of the node assignments that keep the kinds and the branches, the one nearest the track (a held keypoint's
+    anchor: its gripper's TCP, held {keypoint: (3,) m}) keeps every keypoint's identity; each chain's keypoints
+    are spaced along its branch in proportion to their rest lengths, a held end's branch continued to its TCP
+    (the hand hides the last centimetres). None when the skeleton has other nodes or branches than the track,
+    or when a branch's length is more than ``params.relift_span_tol`` away from its chain's rest length."""
+    held = held or {}
+    ai, ak = topology.anchor_idx, topology.anchor_kind
+    sk = skeleton_3d(cloud, K, T_world_cam, params, all_components=False)
+    if len(sk.nodes) != len(ai) or sorted(sk.kinds.tolist()) != sorted(ak.tolist()):
+        return None
+    links = {}
+    for a, b, poly in sk.branches:
+        key = (min(a, b), max(a, b))
+        if key in links or a == b:
+            return None  # two branches between two nodes (a loop): not the track's tree
+        links[key] = poly if a < b else poly[::-1]
+    pos = {int(k): held.get(int(k), X_prev[k]) for k in ai}
+    slot = {int(k): i for i, k in enumerate(ai)}
+    ends = [(int(c[0]), int(c[-1])) for c in topology.chains]
+    best, best_cost = None, np.inf
+    for perm in itertools.permutations(range(len(sk.nodes))):
+        if any(sk.kinds[perm[i]] != ak[i] for i in range(len(ai))):
+            continue
+        if any((min(perm[slot[a]], perm[slot[b]]), max(perm[slot[a]], perm[slot[b]])) not in links for a, b in ends):
+            continue
+        cost = sum(float(np.linalg.norm(sk.nodes[perm[slot[k]]] - pos[k])) for k in pos)
+        if cost < best_cost:
+            best, best_cost = perm, cost
+    if best is None or len(links) != len(ends):
+        return None
+    rest = {(int(min(e)), int(max(e))): float(r) for e, r in zip(topology.edges, topology.rest, strict=True)}
+    out = X_prev.copy()
+    for c, (a, b) in zip(topology.chains, ends, strict=True):
+        na, nb = best[slot[a]], best[slot[b]]
+        poly = links[(min(na, nb), max(na, nb))]
+        poly = poly if na < nb else poly[::-1]
+        if a in held:
+            poly = np.concatenate([held[a][None], poly])
+        if b in held:
+            poly = np.concatenate([poly, held[b][None]])
+        s = _arc(poly)
+        r = np.array([rest[int(min(u, v)), int(max(u, v))] for u, v in zip(c[:-1], c[1:], strict=True)])
+        if abs(s[-1] / r.sum() - 1.0) > params.relift_span_tol:
+            return None
+        f = np.concatenate([[0.0], np.cumsum(r)]) / r.sum()
+        out[c] = np.stack([np.interp(f * s[-1], s, poly[:, i]) for i in range(3)], axis=1)
+    return out
+
+
+__all__ = [
+    "cell_corner_normals", "chain_reversals", "grid_symmetries", "relift_chains", "relift_grid", "tangled_cells",
+    "unfold_chains",
+]

@@ -21,7 +21,7 @@ from tracking.metrics import chamfer_mm, edge_rmse_mm
 from tracking.params import TrackingParams
 from tracking.skeleton import LEAF
 from tracking.solver import chain_neighbours, hop_neighbours, solve_keypoints
-from tracking.tangle import chain_reversals, relift_grid, tangled_cells, unfold_chains
+from tracking.tangle import chain_reversals, relift_chains, relift_grid, tangled_cells, unfold_chains
 
 
 class TrackStatus(str, Enum):
@@ -468,22 +468,34 @@ class Tracker:
         soft: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, int, int, bool]:
         """A 1D solution X (N, 3) m checked for chains folded onto themselves; a folded one is solved again from
-        its chains laid out without the fold (``unfold_chains``), kept when fewer keypoints turn back and its
-        edge error is no larger. Returns (X, anchors matched, keypoints turned back left, repaired)."""
+        its chains laid out without the fold (``unfold_chains``) and from chains laid along the frame's skeleton
+        (``relift_chains``: a branch lost behind the rest of the object and seen again), the one with the fewest
+        keypoints turned back kept when there are fewer than before and its edge error is no larger.
+        Returns (X, anchors matched, keypoints turned back left, repaired)."""
         assert self.topology is not None
         cos_max = self.params.fold_cos
         bad = len(chain_reversals(X, self.topology.chains, cos_max))
         if bad == 0:
             return X, matched, 0, False
-        X0 = unfold_chains(X, self.topology, cos_max, self.params.fold_span_min)
-        if X0 is None:
-            return X, matched, bad, False
-        X2, m2 = track_frame(X0, self.topology, cloud, det, kinds, self.params, tcp, self.grasp_idx, X0, hidden, soft)
-        bad2 = len(chain_reversals(X2, self.topology.chains, cos_max))
+        held = {}
+        if tcp is not None:
+            at = np.asarray(tcp, np.float64).reshape(-1, 3)
+            held = {int(k): at[i] for i, k in enumerate(self.grasp_idx) if k >= 0 and i < len(at)}
+        starts = [unfold_chains(X, self.topology, cos_max, self.params.fold_span_min),
+                  relift_chains(X, self.topology, cloud, self.K, self.T, self.params, held)]
         edges, rest = self.topology.edges, self.topology.rest
-        if bad2 < bad and edge_rmse_mm(X2, edges, rest) <= edge_rmse_mm(X, edges, rest):
-            return X2, m2, bad2, True
-        return X, matched, bad, False
+        best = (X, matched, bad, False)
+        abs_best = edge_rmse_mm(X, edges, rest)
+        for X0 in starts:
+            if X0 is None:
+                continue
+            X2, m2 = track_frame(X0, self.topology, cloud, det, kinds, self.params, tcp, self.grasp_idx, X0, hidden,
+                                 soft)
+            bad2 = len(chain_reversals(X2, self.topology.chains, cos_max))
+            abs2 = edge_rmse_mm(X2, edges, rest)
+            if bad2 < best[2] and abs2 <= abs_best:
+                best, abs_best = (X2, m2, bad2, True), abs2
+        return best
 
     def _begin_step(
         self, cloud: np.ndarray, tcp: np.ndarray | None, gripper_closed: np.ndarray | None
