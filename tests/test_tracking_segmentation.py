@@ -594,14 +594,15 @@ def test_hidden_behind_the_mask_unless_well_in_front_of_it() -> None:
         [0.1, 0.0, 0.99],  # touching it (between fingers): no cloud of its own either
         [0.1, 0.0, 0.8],  # a rope passing well in front of the arm: seen
         [0.59, 0.0, 1.0],  # masked pixel without a depth reading
-        [5.0, 0.0, 1.0],  # out of the image
+        [5.0, 0.0, 1.0],  # out of the image: out of sight, whatever the mask
     ])
     got = hidden_behind(pts, mask, depth, K, T, margin_m=0.02)
-    assert got.tolist() == [False, True, True, False, True, False]
+    assert got.tolist() == [False, True, True, False, True, True]
+    assert hidden_behind(pts, np.zeros_like(mask), depth, K, T, margin_m=0.02).tolist() == [False] * 5 + [True]
     # without a mask, behind whatever the depth shows by more than the margin: the first point is behind the surface
     # left of the arm too; the one touching the surface is on it, seen
     got = hidden_behind(pts, None, depth, K, T, margin_m=0.02)
-    assert got.tolist() == [True, True, False, False, True, False]
+    assert got.tolist() == [True, True, False, False, True, True]
     on = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.015], [0.0, 0.0, 1.03]])  # on the surface, within, beyond the margin
     assert hidden_behind(on, None, depth, K, T, margin_m=0.02).tolist() == [False, False, True]
 

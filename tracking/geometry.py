@@ -102,9 +102,10 @@ def hidden_behind(
     not nearer than its depth less margin_m (touching the arm, between the fingers, counts); a point well in front
     (a rope passing before the arm) is seen. Without one (mask None): a point whose pixel shows a surface more than
     margin_m in front of it (a cloth's own near layer, or the arm), or no reading; a point on the surface is seen.
-    Such a point has no cloud of its own."""
+    Either way a point outside the image (a held end above its top edge) is out of sight. Such a point has no
+    cloud of its own."""
     r, c, inside, z = pixels_of(np.asarray(points, np.float64).reshape(-1, 3), K, T_world_cam, depth.shape)
-    out = np.zeros(len(z), bool)
+    out = ~inside
     ri, ci = r[inside], c[inside]
     d = depth[ri, ci]
     if mask is None:

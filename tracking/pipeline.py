@@ -462,8 +462,9 @@ class LivePipeline:
         hidden = None
         if topo.kind == "2d":
             hidden = hidden_behind(X, None, depth, self.K_seg, self.T, self.params.arm_margin_m)
-        elif arm is not None:
-            hidden = hidden_behind(X, arm, depth, self.K_seg, self.T, self.params.arm_margin_m)
+        else:
+            mask = arm if arm is not None else np.zeros(depth.shape, bool)  # what is out of the image only
+            hidden = hidden_behind(X, mask, depth, self.K_seg, self.T, self.params.arm_margin_m)
         res = self.tracker.step(seg.points, tcp=tcp, gripper_closed=closed, hidden=hidden, tcp_rot=tcp_rot)
         self._timings.update(self.tracker.last_timings_ms)
         p = self.params
