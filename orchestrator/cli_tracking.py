@@ -189,6 +189,25 @@ def stage_medians(stages: list[dict[str, float]]) -> dict[str, float]:
     names = sorted({k for st in stages for k in st})
     return {k: round(float(np.median([st[k] for st in stages if k in st])), 3) for k in names}
 
+def _renumbering(topology: Any, new: Any, X: np.ndarray, last: np.ndarray) -> np.ndarray | None:
+    """The order (N,) int64 that puts a re-initialised track's keypoints X (N, 3) m (topology ``new``) in the
+    clip's numbering (``topology``): the identity or the chains' reversal, whichever keeps the edges and lies
+    nearer the last keypoints (N, 3) m. None when the edges differ (another split of the keypoints among the
+    branches): the clip's topology cannot hold these keypoints, and the frames are filled from its own track."""
+    edges = {tuple(sorted(e)) for e in np.asarray(topology.edges).tolist()}
+    if {tuple(sorted(e)) for e in np.asarray(new.edges).tolist()} != edges:
+        return None
+    N = len(X)
+    best, cost = None, np.inf
+    for perm in (np.arange(N), np.arange(N)[::-1]):
+        if {tuple(sorted(e)) for e in perm[np.asarray(topology.edges)].tolist()} != edges:
+            continue
+        c = float(np.linalg.norm(X[perm] - last, axis=1).sum()) if len(last) == N else 0.0
+        if c < cost:
+            best, cost = perm, c
+    return best
+
+
 def track_sequence(
     seq: Any, params: Any, kind: str | None, progress: bool = True, on_frame: Callable[[int], None] | None = None
 ) -> dict[str, Any]:
@@ -215,6 +234,7 @@ def track_sequence(
     abs_mm, cd_mm, gt_mm, ms = [], [], [], []
     stages: list[dict[str, float]] = []  # each forward frame's LivePipeline.timings_ms (arm: its prepare)
     topology = None
+    last = np.zeros((0, 3))  # the last frame's keypoints in the clip's numbering
     t_start = time.monotonic()
     for i, frame in enumerate(iter_depth(seq.frames)):  # depth only: tracking reads no colour
         V, F, tcp, closed, rot = _arm_geometry(seq, i, arms)
@@ -235,8 +255,15 @@ def track_sequence(
         tangles[1] += out.repaired and not out.tangled
         if len(out.keypoints) and topology is None:
             topology = out.topology
-        same = topology is not None and len(out.keypoints) == topology.n_keypoints
-        raw.append(out.keypoints if same else None)
+        kp = out.keypoints
+        same = topology is not None and len(kp) == topology.n_keypoints
+        if same and out.topology is not topology:  # re-initialised after a loss: keypoints numbered anew
+            perm = _renumbering(topology, out.topology, kp, last)
+            same = perm is not None
+            kp = kp[perm] if perm is not None else kp
+        if same:
+            last = kp
+        raw.append(kp if same else None)
         grasp.append(out.grasp_idx if same else None)
         if not same:
             pending[i] = _Pending.keep(out.prepared, frame.depth, frame.depth_scale, pipe.stride, tcp, closed, rot)
