@@ -429,7 +429,8 @@ def test_background_moves_back_on_a_small_step_only_after_consecutive_frames():
 
 def test_initial_rope_cloud_is_grown_up_to_the_grippers_holding_it(cam):
     """Only the middle of a hanging rope moved (slow start): its still ends are grown up to the held TCPs; a
-    growth that cannot reach another gripper is dropped."""
+    growth that cannot reach another gripper is dropped, and the still parts are then grown as free ends (rope
+    only, nothing near that gripper)."""
     from tracking.pipeline import LivePipeline
     from tracking.segmentation import Segmentation
 
@@ -448,7 +449,12 @@ def test_initial_rope_cloud_is_grown_up_to_the_grippers_holding_it(cam):
     out = pipe.reach_grippers(d, seg, None, c[[0, -1]])
     assert cKDTree(out.points).query(c[[0, -1]])[0].max() < P.grasp_gate_m
     assert (cKDTree(c).query(out.points)[0] < r + 0.005).all()  # rope only
-    assert pipe.reach_grippers(d, seg, None, np.array([[0.0, 0.6, 0.3]])) is seg  # nothing leads there
+    far = np.array([[0.0, 0.6, 0.3]])  # nothing leads there
+    free = pipe.reach_grippers(d, seg, None, far)
+    np.testing.assert_array_equal(free.points[: len(middle)], middle)
+    assert len(free.points) > len(middle)
+    assert (cKDTree(c).query(free.points)[0] < r + 0.005).all()  # rope only
+    assert cKDTree(free.points).query(far)[0].min() > P.grasp_gate_m
 
 
 def test_grown_segmentation_with_the_table_plane_takes_the_still_part_of_a_hanging_sheet(cam):

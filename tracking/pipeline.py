@@ -281,25 +281,23 @@ class LivePipeline:
         slow start only the middle of a rope moves, and its still ends hang up to the grippers. Kept only when
         it reaches a gripper the segmentation did not, or comes closer to one and stops within ``hand_hidden_m``
         of its TCP where the arm (arm: decimated mask) hides the rest of the way (``gaps_hidden``: the hand
-        hides the end it holds). When every gripper is reached already it is grown until
-        it stalls (nothing within ``grasp_gate_m`` of a TCP), a part of a pixel or more at a time: a still free end,
+        hides the end it holds). Then, whether the grippers were reached or not, it is grown until it stalls
+        (nothing within ``grasp_gate_m`` of a TCP), a part of a pixel or more at a time: a still free end,
         e.g. a branch's tip on the table or hanging away from the camera."""
-        p = self.seg_params
         if held is None or len(held) == 0 or len(seg.points) == 0 or self.kind == "2d" or seg.grown:
             return seg
         held = np.asarray(held, np.float64).reshape(-1, 3)
+        return self._grow_free(depth, self._grow_to_grippers(depth, seg, arm, held), arm, held)
+
+    def _grow_to_grippers(
+        self, depth: np.ndarray, seg: Segmentation, arm: np.ndarray | None, held: np.ndarray
+    ) -> Segmentation:
+        """``reach_grippers``' growth towards the holding grippers' TCPs held (G, 3) m (seg when it is not kept)."""
+        p = self.seg_params
         d0 = cKDTree(seg.points).query(held)[0]
         reached = d0 <= p.grasp_gate_m
-        if reached.all():  # the still free parts (a branch's tip lying on the table) are grown to their ends
-            out = seg
-            for _ in range(p.attach_iterations):
-                grown = grow_attached_tubes(depth, out, self.K_seg, self.T, p, arm, self._support, min_part_px=1)
-                new = grown.points[len(out.points):]
-                new = new[(np.linalg.norm(new[:, None, :] - held[None, :, :], axis=2) > p.grasp_gate_m).all(axis=1)]
-                if len(new) == 0:
-                    break
-                out = replace(out, points=np.concatenate([out.points, new]))
-            return out
+        if reached.all():
+            return seg
         # what grows near a gripper is the gripper: within grasp_gate_m of one the cloud reached already,
         # within attach_reach_m of the others (the end is then within grasp_gate_m: initialisation puts it at the TCP)
         gate = np.where(reached, p.grasp_gate_m, min(p.attach_reach_m, p.grasp_gate_m))
@@ -325,6 +323,22 @@ class LivePipeline:
                                              p.voxel_m).any():
                 return out
         return seg
+
+    def _grow_free(
+        self, depth: np.ndarray, seg: Segmentation, arm: np.ndarray | None, held: np.ndarray
+    ) -> Segmentation:
+        """``reach_grippers``' growth of the still free parts until it stalls, nothing within ``grasp_gate_m`` of
+        the TCPs held (G, 3) m."""
+        p = self.seg_params
+        out = seg
+        for _ in range(p.attach_iterations):
+            grown = grow_attached_tubes(depth, out, self.K_seg, self.T, p, arm, self._support, min_part_px=1)
+            new = grown.points[len(out.points):]
+            new = new[(np.linalg.norm(new[:, None, :] - held[None, :, :], axis=2) > p.grasp_gate_m).all(axis=1)]
+            if len(new) == 0:
+                break
+            out = replace(out, points=np.concatenate([out.points, new]))
+        return out
 
     def initial_cloud(
         self, refs: np.ndarray, depth: np.ndarray, seg: Segmentation, arm: np.ndarray | None,
