@@ -32,7 +32,7 @@ which ``trackdeform eval`` cannot show on sequences without ground truth.
 
 The default set (``--set all``) is the five-sequence development set plus the variants below (camera
 from the side and from above, rope lengths 0.8-1.0 m, radii 4-7 mm, colours, the three speeds, other
-seeds; 46 sequences); generating it the first time takes 70-160 min and ~8 GB (1.5-3.5 min a sequence on this
+seeds; 50 sequences); generating it the first time takes 70-160 min and ~8 GB (1.5-3.5 min a sequence on this
 2-core machine), tracking and scoring it ~8 min here.
 """
 
@@ -129,6 +129,14 @@ VARIANTS: list[dict[str, Any]] = [
     dict(name="cloth_medium_front_s113", obj="cloth", speed="medium", seconds=5, seed=113, camera=FRONT_LOW),
     dict(name="cloth_medium_above_s114", obj="cloth", speed="medium", seconds=5, seed=114, camera=ABOVE),
     dict(name="cloth_fast_obl_s115", obj="cloth", speed="fast", seconds=5, seed=115, camera=OBLIQUE),
+    dict(name="bdlo_slow_high_s121", obj="bdlo", speed="slow", seconds=5, seed=121, camera=HIGH_FRONT, length=0.9,
+         branch_len=0.26),
+    dict(name="bdlo_fast_above_s125", obj="bdlo", speed="fast", seconds=5, seed=125, camera=ABOVE, radius=0.006,
+         branch_len=0.22, rgb=[0.7, 0.2, 0.2]),
+    dict(name="bdlo_medium_front_s123", obj="bdlo", speed="medium", seconds=5, seed=123, camera=FRONT_LOW,
+         length=0.85, branch_len=0.25),
+    dict(name="rope_fast_high_s124", obj="rope", speed="fast", seconds=5, seed=124, camera=HIGH_FRONT, length=0.9,
+         radius=0.0055, rgb=[0.5, 0.3, 0.7]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
