@@ -179,9 +179,13 @@ def relift_chains(
     slot = {int(k): i for i, k in enumerate(ai)}
     ends = [(int(c[0]), int(c[-1])) for c in topology.chains]
     best, best_cost = None, np.inf
-    for perm in itertools.permutations(range(len(sk.nodes))):
-        if any(sk.kinds[perm[i]] != ak[i] for i in range(len(ai))):
-            continue
+    kinds = sorted(set(ak.tolist()))
+    slots_of = [np.flatnonzero(ak == k) for k in kinds]  # the track's anchors of each kind
+    nodes_of = [np.flatnonzero(sk.kinds == k) for k in kinds]  # the skeleton's nodes of that kind
+    for choice in itertools.product(*(itertools.permutations(n.tolist()) for n in nodes_of)):
+        perm = np.empty(len(ai), np.int64)
+        for sl, nodes in zip(slots_of, choice, strict=True):
+            perm[sl] = nodes
         if any((min(perm[slot[a]], perm[slot[b]]), max(perm[slot[a]], perm[slot[b]])) not in links for a, b in ends):
             continue
         cost = sum(float(np.linalg.norm(sk.nodes[perm[slot[k]]] - pos[k])) for k in pos)
