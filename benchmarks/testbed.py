@@ -32,7 +32,7 @@ which ``trackdeform eval`` cannot show on sequences without ground truth.
 
 The default set (``--set all``) is the five-sequence development set plus the variants below (camera
 from the side and from above, rope lengths 0.8-1.0 m, radii 4-7 mm, colours, the three speeds, other
-seeds; 50 sequences); generating it the first time takes 70-160 min and ~8 GB (1.5-3.5 min a sequence on this
+seeds; 53 sequences); generating it the first time takes 70-160 min and ~8 GB (1.5-3.5 min a sequence on this
 2-core machine), tracking and scoring it ~8 min here.
 """
 
@@ -137,6 +137,12 @@ VARIANTS: list[dict[str, Any]] = [
          length=0.85, branch_len=0.25),
     dict(name="rope_fast_high_s124", obj="rope", speed="fast", seconds=5, seed=124, camera=HIGH_FRONT, length=0.9,
          radius=0.0055, rgb=[0.5, 0.3, 0.7]),
+    dict(name="rope_slow_obl_s127", obj="rope", speed="slow", seconds=5, seed=127, camera=OBLIQUE, length=0.85,
+         radius=0.0045),
+    dict(name="bdlo_fast_side_s130", obj="bdlo", speed="fast", seconds=5, seed=130, camera=SIDE,
+         branch_len=0.24, rgb=[0.3, 0.3, 0.8]),
+    dict(name="bdlo_medium_obl_s129", obj="bdlo", speed="medium", seconds=5, seed=129, camera=OBLIQUE,
+         branch_len=0.2, radius=0.0055),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
