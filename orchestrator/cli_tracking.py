@@ -189,6 +189,7 @@ def stage_medians(stages: list[dict[str, float]]) -> dict[str, float]:
     names = sorted({k for st in stages for k in st})
     return {k: round(float(np.median([st[k] for st in stages if k in st])), 3) for k in names}
 
+
 def _renumbering(topology: Any, new: Any, X: np.ndarray, last: np.ndarray) -> np.ndarray | None:
     """The order (N,) int64 that puts a re-initialised track's keypoints X (N, 3) m (topology ``new``) in the
     clip's numbering (``topology``): the identity or the chains' reversal, whichever keeps the edges and lies
@@ -255,16 +256,17 @@ def track_sequence(
         tangles[1] += out.repaired and not out.tangled
         if len(out.keypoints) and topology is None:
             topology = out.topology
-        kp = out.keypoints
+        kp, g = out.keypoints, out.grasp_idx
         same = topology is not None and len(kp) == topology.n_keypoints
         if same and out.topology is not topology:  # re-initialised after a loss: keypoints numbered anew
             perm = _renumbering(topology, out.topology, kp, last)
             same = perm is not None
-            kp = kp[perm] if perm is not None else kp
+            if perm is not None:
+                kp, g = kp[perm], np.where(g >= 0, np.argsort(perm)[np.maximum(g, 0)], -1)
         if same:
             last = kp
         raw.append(kp if same else None)
-        grasp.append(out.grasp_idx if same else None)
+        grasp.append(g if same else None)
         if not same:
             pending[i] = _Pending.keep(out.prepared, frame.depth, frame.depth_scale, pipe.stride, tcp, closed, rot)
         if same and out.status != "lost":
