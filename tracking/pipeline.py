@@ -330,15 +330,8 @@ class LivePipeline:
         """``reach_grippers``' growth of the still free parts until it stalls, nothing within ``grasp_gate_m`` of
         the TCPs held (G, 3) m."""
         p = self.seg_params
-        out = seg
-        for _ in range(p.attach_iterations):
-            grown = grow_attached_tubes(depth, out, self.K_seg, self.T, p, arm, self._support, min_part_px=1)
-            new = grown.points[len(out.points):]
-            new = new[(np.linalg.norm(new[:, None, :] - held[None, :, :], axis=2) > p.grasp_gate_m).all(axis=1)]
-            if len(new) == 0:
-                break
-            out = replace(out, points=np.concatenate([out.points, new]))
-        return out
+        return complete_thin_parts(depth, seg, self.K_seg, self.T, p, arm, self._support, p.attach_iterations,
+                                   (held, p.grasp_gate_m))
 
     def initial_cloud(
         self, refs: np.ndarray, depth: np.ndarray, seg: Segmentation, arm: np.ndarray | None,

@@ -753,10 +753,14 @@ def complete_thin_parts(
     params: TrackingParams,
     arm_mask: np.ndarray | None = None,
     support: tuple[np.ndarray, float] | None = None,
+    iterations: int | None = None,
+    away: tuple[np.ndarray, float] | None = None,
 ) -> Segmentation:
     """A 1D object's tracking segmentation of depth (H, W) m grown over its thin parts (``grow_attached_tubes``,
-    up to ``track_attach_iterations`` times, each within ``attach_reach_m`` of what it has and taking parts of a
-    single pixel: a tube steep to the image plane gains a row of one or two pixels a step).
+    up to ``iterations`` times (default ``track_attach_iterations``), each within ``attach_reach_m`` of what it
+    has and taking parts of a single pixel: a tube steep to the image plane gains a row of one or two pixels a
+    step). away: (points (G, 3) m, distance m): what grows within that distance of them is left out (a gripper
+    holding the object is no part of it; ``LivePipeline.reach_grippers`` grows the still free ends so).
 
     Where the object stood in the references, the background holds the object itself: a branch swinging back
     to where it hung reads within the change threshold of that background, or behind it, and is missing from
@@ -764,7 +768,7 @@ def complete_thin_parts(
     depth-continuous with the part that is seen. Each growth runs on the crop of the image it can reach (the
     cloud's pixels and ``attach_reach_m`` around them). Returns the input when nothing is added."""
     H, W = depth.shape
-    for _ in range(max(0, params.track_attach_iterations)):
+    for _ in range(max(0, params.track_attach_iterations if iterations is None else iterations)):
         uv, z = project_points(seg.points, K, T_world_cam)
         front = z > 1e-6
         if not front.any():
@@ -781,9 +785,12 @@ def complete_thin_parts(
         Kc[1, 2] -= lo[1]
         arm = None if arm_mask is None else arm_mask[crop]
         grown = grow_attached_tubes(depth[crop], seg, Kc, T_world_cam, params, arm, support, min_part_px=1)
-        if len(grown.points) == len(seg.points):
+        new = grown.points[len(seg.points):]
+        if away is not None and len(new):
+            new = new[(np.linalg.norm(new[:, None, :] - away[0][None, :, :], axis=2) > away[1]).all(axis=1)]
+        if len(new) == 0:
             break
-        seg = grown
+        seg = replace(grown, points=np.concatenate([seg.points, new]))
     return seg
 
 
