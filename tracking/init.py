@@ -60,7 +60,8 @@ class Initialisation:
     object_class: ObjectClass
 
 
-def _polyline_arc(poly: np.ndarray) -> np.ndarray:
+def polyline_arc(poly: np.ndarray) -> np.ndarray:
+    """Arc length (M,) m from the first point to each point of a polyline (M, 3) m."""
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poly, axis=0), axis=1))])
 
 
@@ -206,7 +207,7 @@ def initialise_1d(
     Nn = len(nodes)
     n_free = max(0, params.n_keypoints_1d - Nn)
     polys = [p for _, _, p in branches]
-    lengths = np.array([_polyline_arc(p)[-1] for p in polys])
+    lengths = np.array([polyline_arc(p)[-1] for p in polys])
     root = root_leaf(nodes, kinds, K, T_world_cam, root_hint, 2.0 * params.grasp_gate_m)
     node_u = project_points(nodes, K, T_world_cam)[0][:, 0]
     dfs = _dfs_branch_order(Nn, branches, root, node_u)
@@ -224,7 +225,7 @@ def initialise_1d(
         start, end = (b, a) if rev else (a, b)
         chain = [int(node_kp[start])]
         poly = polys[k][::-1] if rev else polys[k]
-        arc = _polyline_arc(poly)
+        arc = polyline_arc(poly)
         t = arc[-1] * np.arange(1, counts[k] + 1) / (counts[k] + 1)
         free = np.stack([np.interp(t, arc, poly[:, i]) for i in range(3)], axis=1)
         for x in free:

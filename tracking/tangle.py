@@ -22,7 +22,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from tracking.anchors import contour_3d, lift_grid, skeleton_3d
-from tracking.init import Topology
+from tracking.init import Topology, polyline_arc
 from tracking.metrics import edge_lengths
 from tracking.params import TrackingParams
 
@@ -110,15 +110,29 @@ def chain_reversals(X: np.ndarray, chains: list[np.ndarray], cos_max: float) -> 
     return np.concatenate(out) if out else np.zeros(0, np.int64)
 
 
+def _chain_rests(topology: Topology) -> list[np.ndarray]:
+    """Each chain's rest lengths (len(chain) - 1,) m, edge by edge along it."""
+    rest = {(int(min(e)), int(max(e))): float(r) for e, r in zip(topology.edges, topology.rest, strict=True)}
+    return [np.array([rest[int(min(a, b)), int(max(a, b))] for a, b in zip(c[:-1], c[1:], strict=True)])
+            for c in topology.chains]
+
+
+def _spaced_along(poly: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Points (len(r) + 1, 3) m along a polyline (M, 3) m from its start to its end, spaced in proportion to the
+    rest lengths r (E,) m."""
+    s = polyline_arc(poly)
+    f = np.concatenate([[0.0], np.cumsum(r)]) / max(r.sum(), 1e-12)
+    return np.stack([np.interp(f * s[-1], s, poly[:, i]) for i in range(3)], axis=1)
+
+
 def unfold_chains(X: np.ndarray, topology: Topology, cos_max: float, min_span: float) -> np.ndarray | None:
     """Keypoints X (N, 3) m with every chain that turns back on itself (``chain_reversals``) laid out again
     along itself with the fold taken out: the turned-back keypoints dropped from the chain's polyline (until it
     has none), the chain's keypoints spaced on what is left in proportion to their rest lengths, its ends kept.
     A warm start for the solver, which a fold holds in a local minimum: its keypoints lie on the object, in the
     wrong order, and the rest of the chain is stretched to make up the length the fold takes. None: no fold."""
-    rest = {(int(min(e)), int(max(e))): float(r) for e, r in zip(topology.edges, topology.rest, strict=True)}
     out, changed = X.copy(), False
-    for c in topology.chains:
+    for c, r in zip(topology.chains, _chain_rests(topology), strict=True):
         if len(c) < 3:
             continue
         keep = np.ones(len(c), bool)
@@ -131,19 +145,11 @@ def unfold_chains(X: np.ndarray, topology: Topology, cos_max: float, min_span: f
         if keep.all():
             continue
         P = X[c[keep]]
-        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
-        r = np.array([rest[int(min(a, b)), int(max(a, b))] for a, b in zip(c[:-1], c[1:], strict=True)])
-        if s[-1] < min_span * r.sum():
+        if polyline_arc(P)[-1] < min_span * r.sum():
             continue
         changed = True
-        f = np.concatenate([[0.0], np.cumsum(r)]) / max(r.sum(), 1e-12)
-        out[c] = np.stack([np.interp(f * s[-1], s, P[:, i]) for i in range(3)], axis=1)
+        out[c] = _spaced_along(P, r)
     return out if changed else None
-
-
-def _arc(poly: np.ndarray) -> np.ndarray:
-    """Cumulative arc length (M,) m of a polyline (M, 3) m."""
-    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poly, axis=0), axis=1))])
 
 
 def relift_chains(
@@ -193,9 +199,8 @@ def relift_chains(
             best, best_cost = perm, cost
     if best is None or len(links) != len(ends):
         return None
-    rest = {(int(min(e)), int(max(e))): float(r) for e, r in zip(topology.edges, topology.rest, strict=True)}
     out = X_prev.copy()
-    for c, (a, b) in zip(topology.chains, ends, strict=True):
+    for c, r, (a, b) in zip(topology.chains, _chain_rests(topology), ends, strict=True):
         na, nb = best[slot[a]], best[slot[b]]
         poly = links[(min(na, nb), max(na, nb))]
         poly = poly if na < nb else poly[::-1]
@@ -203,12 +208,9 @@ def relift_chains(
             poly = np.concatenate([held[a][None], poly])
         if b in held:
             poly = np.concatenate([poly, held[b][None]])
-        s = _arc(poly)
-        r = np.array([rest[int(min(u, v)), int(max(u, v))] for u, v in zip(c[:-1], c[1:], strict=True)])
-        if abs(s[-1] / r.sum() - 1.0) > params.relift_span_tol:
+        if abs(polyline_arc(poly)[-1] / r.sum() - 1.0) > params.relift_span_tol:
             return None
-        f = np.concatenate([[0.0], np.cumsum(r)]) / r.sum()
-        out[c] = np.stack([np.interp(f * s[-1], s, poly[:, i]) for i in range(3)], axis=1)
+        out[c] = _spaced_along(poly, r)
     return out
 
 
