@@ -613,6 +613,21 @@ def test_hidden_behind_the_mask_unless_well_in_front_of_it() -> None:
     assert hidden_behind(on, None, depth, K, T, margin_m=0.02).tolist() == [False, False, True]
 
 
+def test_hidden_behind_a_near_layer_beside_it() -> None:
+    """A point in open space with the object's near layer within reach across the image is behind that layer."""
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    T = np.eye(4)
+    depth = np.full((480, 640), 1.5)  # the table
+    depth[:, 300:311] = 0.8  # a cloth seen edge-on: a strip in front
+    # at 1 m depth, 0.03 m is 15 px: columns 320 and 330 are within reach of the strip (last column 310), 400 not
+    pts = np.array([[0.0, 0.0, 1.0], [0.02, 0.0, 1.0], [0.16, 0.0, 1.0], [0.0, 0.0, 0.75]])
+    got = hidden_behind(pts, None, depth, K, T, margin_m=0.02, reach_m=0.03)
+    assert got.tolist() == [True, False, False, False]  # the last is in front of the strip: seen
+    got = hidden_behind(pts, None, depth, K, T, margin_m=0.02, reach_m=0.05)
+    assert got.tolist() == [True, True, False, False]
+    assert not hidden_behind(pts, None, depth, K, T, margin_m=0.02).any()  # no reach: the old rule
+
+
 def test_tracking_regains_a_hanging_part_its_background_holds():
     # the tube's lower part hung where it is now in the reference: the background there is the tube itself, and
     # only its upper part (moved since) stands out of it; the thin part continuous with it is grown back

@@ -95,24 +95,48 @@ def gaps_hidden(
 
 def hidden_behind(
     points: np.ndarray, mask: np.ndarray | None, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray,
-    margin_m: float,
+    margin_m: float, reach_m: float = 0.0,
 ) -> np.ndarray:
     """(N,) bool: which points (N, 3) m world lie out of sight (depth (h, w) m, 0 = no reading; camera K (3, 3) at
     T_world_cam (4, 4)). With a mask (h, w) bool of what hides them (the arm's pixels): a point on a masked pixel and
     not nearer than its depth less margin_m (touching the arm, between the fingers, counts); a point well in front
     (a rope passing before the arm) is seen. Without one (mask None): a point whose pixel shows a surface more than
     margin_m in front of it (a cloth's own near layer, or the arm), or no reading; a point on the surface is seen.
-    Either way a point outside the image (a held end above its top edge) is out of sight. Such a point has no
-    cloud of its own."""
+    So is a point whose pixel shows open space (a surface more than margin_m behind it) unless, with reach_m > 0, a
+    pixel within reach_m of it (across the image, at its depth) shows a surface more than margin_m in front of it:
+    then it is out of sight behind that layer, a little beside where it was put (a cloth turned edge-on), and the
+    nearest visible point, on the layer in front, is not its place. Either way a point outside the image (a held
+    end above its top edge) is out of sight. Such a point has no cloud of its own."""
     r, c, inside, z = pixels_of(np.asarray(points, np.float64).reshape(-1, 3), K, T_world_cam, depth.shape)
     out = ~inside
     ri, ci = r[inside], c[inside]
     d = depth[ri, ci]
     if mask is None:
         out[inside] = (d <= 0) | (z[inside] > d + margin_m)
+        free = np.flatnonzero(inside)[(d > 0) & (z[inside] < d - margin_m)]
+        if reach_m > 0 and len(free):
+            out[free] = occluder_within(depth, r[free], c[free], z[free], K, reach_m, margin_m)
     else:
         out[inside] = mask[ri, ci] & ((d <= 0) | (z[inside] > d - margin_m))
     return out
+
+
+def occluder_within(
+    depth: np.ndarray, r: np.ndarray, c: np.ndarray, z: np.ndarray, K: np.ndarray, reach_m: float, margin_m: float
+) -> np.ndarray:
+    """(n,) bool: whether a pixel of depth (h, w) m (0 = no reading; camera matrix K (3, 3)) within reach_m of pixel
+    (r, c) (n,) int64, measured across the image at depth z (n,) m, shows a surface more than margin_m in front of
+    z. One window of the largest radius for all, each point's own radius applied inside it."""
+    h, w = depth.shape
+    rad = float(K[0, 0]) * reach_m / np.maximum(z, 1e-6)  # (n,) px
+    k = int(np.ceil(rad.max()))
+    off = np.arange(-k, k + 1)
+    dr, dc = np.meshgrid(off, off, indexing="ij")
+    dr, dc = dr.ravel(), dc.ravel()
+    rr, cc = r[:, None] + dr[None, :], c[:, None] + dc[None, :]  # (n, W)
+    ok = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w) & (dr * dr + dc * dc <= (rad * rad)[:, None])
+    dd = depth[np.clip(rr, 0, h - 1), np.clip(cc, 0, w - 1)]
+    return (ok & (dd > 0) & (dd < (z - margin_m)[:, None])).any(axis=1)
 
 
 def decimation_stride(K: np.ndarray, pixel_m: float) -> int:

@@ -116,7 +116,8 @@ class TrackingParams:
         projected onto the cloud only when its nearest point lies within this fraction of the median edge rest
         length (the rope just beside the fingers); farther, the cloud it would be pulled onto is another part of
         the object (a cloth turned edge-on: its near strip), and the edges, its grasp and its hand's motion
-        place it instead.
+        place it instead. A cloth keypoint in open space with such a layer within this reach across the image
+        is out of sight behind it too (``hidden_behind``'s reach_m), not pulled onto the layer's nearest point.
       hidden_bend: each solver sweep, such a hidden 1D keypoint moves this fraction of the way to where its chain
         runs smoothest (least second differences over two neighbours each side): the hidden stretch continues the
         seen rope's direction into the hand instead of cutting a straight chord; more fights the edge lengths.

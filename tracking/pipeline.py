@@ -465,10 +465,12 @@ class LivePipeline:
         self._timings["segment"] = 1e3 * (time.perf_counter() - t0)
         topology = self.tracker.topology
         # keypoints out of sight have no cloud of their own: a rope's behind the arm, a cloth's behind whatever the
-        # depth shows in front of them (the arm, or the cloth's own near layer where it folds or turns edge-on)
+        # depth shows in front of them (the arm, or the cloth's own near layer where it folds or turns edge-on), or
+        # just beside such a layer (within the reach of a hidden keypoint's projection) with open space behind
         hidden = None
         if topo.kind == "2d":
-            hidden = hidden_behind(X, None, depth, self.K_seg, self.T, self.params.arm_margin_m)
+            hidden = hidden_behind(X, None, depth, self.K_seg, self.T, self.params.arm_margin_m,
+                                   self.params.hidden_reach * float(np.median(topo.rest)))
         else:
             mask = arm if arm is not None else np.zeros(depth.shape, bool)  # what is out of the image only
             hidden = hidden_behind(X, mask, depth, self.K_seg, self.T, self.params.arm_margin_m)
