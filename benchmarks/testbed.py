@@ -32,7 +32,7 @@ which ``trackdeform eval`` cannot show on sequences without ground truth.
 
 The default set (``--set all``) is the five-sequence development set plus the variants below (camera
 from the side and from above, rope lengths 0.8-1.0 m, radii 4-7 mm, colours, the three speeds, other
-seeds; 53 sequences); generating it the first time takes 70-160 min and ~8 GB (1.5-3.5 min a sequence on this
+seeds; 57 sequences); generating it the first time takes 70-160 min and ~8 GB (1.5-3.5 min a sequence on this
 2-core machine), tracking and scoring it ~8 min here.
 """
 
@@ -143,6 +143,14 @@ VARIANTS: list[dict[str, Any]] = [
          branch_len=0.24, rgb=[0.3, 0.3, 0.8]),
     dict(name="bdlo_medium_obl_s129", obj="bdlo", speed="medium", seconds=5, seed=129, camera=OBLIQUE,
          branch_len=0.2, radius=0.0055),
+    dict(name="cloth_medium_s131", obj="cloth", speed="medium", seconds=5, seed=131,
+         camera=[1.15, -0.75, 1.2, 0.45, -0.45, 0.15]),
+    dict(name="cloth_slow_s132", obj="cloth", speed="slow", seconds=5, seed=132,
+         camera=[1.0, 0.1, 0.9, 0.45, -0.45, 0.2]),
+    dict(name="cloth_fast_s133", obj="cloth", speed="fast", seconds=5, seed=133,
+         camera=[0.75, -0.45, 1.35, 0.45, -0.45, 0.1]),
+    dict(name="cloth_medium_s134", obj="cloth", speed="medium", seconds=5, seed=134,
+         camera=[1.5, -0.2, 1.0, 0.45, -0.45, 0.15], rgb=[0.8, 0.2, 0.2]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
