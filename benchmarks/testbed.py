@@ -347,10 +347,13 @@ def truth_keypoints(gt: Path, like: Path | None = None) -> dict[str, np.ndarray]
             k = np.flatnonzero(bid == b)
             arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(c[0, k], axis=0), axis=1))])
             m = max(2, int(round(arc[-1] / step)) + 1)
-            parts.append(k[np.clip(np.searchsorted(arc, np.linspace(0.0, arc[-1], m)), 0, len(k) - 1)])
+            at = np.interp(np.linspace(0.0, arc[-1], m), arc, np.arange(len(k)))  # fractional samples, by arc
+            i0 = np.minimum(at.astype(int), len(k) - 2)
+            w = (at - i0)[None, :, None]
+            parts.append((1.0 - w) * c[:, k[i0]] + w * c[:, k[i0 + 1]])
             pairs += [(start + i, start + i + 1) for i in range(m - 1)]
             start += m
-        full = c[:, np.concatenate(parts)]
+        full = np.concatenate(parts, axis=1)
         edges = np.array(pairs, np.int64)
     rest = np.linalg.norm(full[0, edges[:, 0]] - full[0, edges[:, 1]], axis=1)
     return {"full": 1000.0 * full, "edge_connection": edges, "reference_lengths": 1000.0 * rest}
