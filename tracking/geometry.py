@@ -129,7 +129,7 @@ def occluder_within(
     z. One window of the largest radius for all, each point's own radius applied inside it."""
     h, w = depth.shape
     rad = float(K[0, 0]) * reach_m / np.maximum(z, 1e-6)  # (n,) px
-    k = int(np.ceil(rad.max()))
+    k = min(int(np.ceil(rad.max())), max(h, w))  # a point at the lens would otherwise ask for a huge window
     off = np.arange(-k, k + 1)
     dr, dc = np.meshgrid(off, off, indexing="ij")
     dr, dc = dr.ravel(), dc.ravel()
