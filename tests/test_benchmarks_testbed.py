@@ -30,3 +30,16 @@ def test_truth_keypoints_rope_on_its_ridge_at_the_trackers_spacing(tmp_path: Pat
     t = truth_keypoints(tmp_path / "gt.npz", tmp_path / "pred.npz")
     assert t["full"].shape == (2, 31, 3)
     np.testing.assert_allclose(t["reference_lengths"], 30.0, rtol=0.02)
+
+
+def test_missed_targets_name_the_column_and_whether_exact_keypoints_miss_them_too() -> None:
+    from benchmarks.testbed import missed
+
+    ok = {"nan_frame_fraction": 0.0, "gt_object_rmse_mm": 1.0, "anchor_err_mm": 3.0, "coverage_mm": 5.0,
+          "Abs_mm": 1.0, "E<5_pct": 100.0, "CD_mm": 2.0, "F<10_pct": 100.0}
+    assert missed("rope", ok, radius_mm=6.0) == [] and missed("cloth", ok, None) == []
+    assert missed("rope", {**ok, "coverage_mm": 9.5}, radius_mm=6.0) == ["coverage 9.50 (<= 9)"]
+    assert missed("cloth", {**ok, "coverage_mm": 9.5}, None) == ["coverage 9.50 (<= 6)"]
+    bad = {**ok, "CD_mm": 8.0, "F<10_pct": 60.0, "truth_CD_mm": 7.0, "truth_F<10_pct": 99.0, "nan_frame_fraction": 0.1}
+    assert missed("bdlo", bad, radius_mm=5.0) == ["missing 10.00 (<= 0)", "CD 8.00 (<= 5) (truth too)",
+                                                  "F<10 60.00 (>= 95)"]
