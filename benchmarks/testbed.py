@@ -13,7 +13,8 @@ its own scorer; see its README. This script
    call each; a sequence is a pure function of its arguments, so a cached one is reused);
 4. runs ``trackdeform track`` on each as a lab would (rgbd.npz, arm poses, joint states, calibration and
    the object category; never the masks or ground truth), output in ``<cache>/tracks/<name>``;
-5. scores ``3d_keypoints.npz`` with the test bed's ``score.py`` and prints one table.
+5. scores ``3d_keypoints.npz`` with the test bed's ``score.py`` and prints one table, then the rows that miss one
+   of issue 10's targets (``TARGETS``), each missed figure with its limit.
 
 Columns: missing = frames with a missing keypoint (%); object / anchors / coverage / Abs / CD in mm,
 E<5 and F<10 in % of all frames (the scorer's definitions); ms/frame = the tracker's median per-frame
