@@ -56,6 +56,9 @@ from typing import Any
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the repository, before this folder's tracking.py
+from tracking.init import grid_topology, polyline_arc  # noqa: E402
+
 REPO = Path(__file__).resolve().parent.parent
 
 # The test bed's development set (make_sequence.py --all), by keyword set.
@@ -348,9 +351,7 @@ def truth_keypoints(gt: Path, like: Path | None = None) -> dict[str, np.ndarray]
         rows = np.round(np.linspace(0, surf.shape[1] - 1, n)).astype(int)
         cols = np.round(np.linspace(0, surf.shape[2] - 1, n)).astype(int)
         full = surf[:, rows][:, :, cols].reshape(len(surf), n * n, 3)
-        idx = np.arange(n * n).reshape(n, n)
-        edges = np.concatenate([np.stack([idx[:, :-1].ravel(), idx[:, 1:].ravel()], 1),
-                                np.stack([idx[:-1].ravel(), idx[1:].ravel()], 1)])
+        edges = grid_topology(n, n, 0.0, 0.0)[0]
     else:
         c = np.asarray(g["centerline"], np.float64)  # (T, M, 3) m
         c = c - float(g["radius_m"]) * c / np.linalg.norm(c, axis=2, keepdims=True)  # the ridge seen from the camera
@@ -359,7 +360,7 @@ def truth_keypoints(gt: Path, like: Path | None = None) -> dict[str, np.ndarray]
         parts, pairs, start = [], [], 0
         for b in np.unique(bid):
             k = np.flatnonzero(bid == b)
-            arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(c[0, k], axis=0), axis=1))])
+            arc = polyline_arc(c[0, k])
             m = max(2, int(round(arc[-1] / step)) + 1)
             at = np.interp(np.linspace(0.0, arc[-1], m), arc, np.arange(len(k)))  # fractional samples, by arc
             i0 = np.minimum(at.astype(int), len(k) - 2)

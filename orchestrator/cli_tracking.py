@@ -195,13 +195,16 @@ def _renumbering(topology: Any, new: Any, X: np.ndarray, last: np.ndarray) -> np
     clip's numbering (``topology``): the identity or the chains' reversal, whichever keeps the edges and lies
     nearer the last keypoints (N, 3) m. None when the edges differ (another split of the keypoints among the
     branches): the clip's topology cannot hold these keypoints, and the frames are filled from its own track."""
-    edges = {tuple(sorted(e)) for e in np.asarray(topology.edges).tolist()}
-    if {tuple(sorted(e)) for e in np.asarray(new.edges).tolist()} != edges:
+    def edge_set(e: np.ndarray) -> set[tuple[int, ...]]:
+        return {tuple(sorted(p)) for p in np.asarray(e).tolist()}
+
+    edges = edge_set(topology.edges)
+    if edge_set(new.edges) != edges:
         return None
     N = len(X)
     best, cost = None, np.inf
     for perm in (np.arange(N), np.arange(N)[::-1]):
-        if {tuple(sorted(e)) for e in perm[np.asarray(topology.edges)].tolist()} != edges:
+        if edge_set(perm[np.asarray(topology.edges)]) != edges:
             continue
         c = float(np.linalg.norm(X[perm] - last, axis=1).sum()) if len(last) == N else 0.0
         if c < cost:
