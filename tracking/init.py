@@ -145,14 +145,16 @@ def allocate_keypoints(
 
 
 def snap_held_leaves(
-    nodes: np.ndarray, kinds: np.ndarray, branches: list[tuple[int, int, np.ndarray]], held: np.ndarray, gate_m: float
+    nodes: np.ndarray, kinds: np.ndarray, branches: list[tuple[int, int, np.ndarray]], held: np.ndarray,
+    gate_m: float | np.ndarray,
 ) -> tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]:
     """Move each leaf held by a closed gripper to the gripper's TCP (the end is between the fingers).
 
     nodes (K, 3) m, kinds (K,), branches (a, b, polyline (M, 3) m a -> b); held: (H, 3) m TCPs of
-    the closed grippers. The leaf nearest a TCP within ``gate_m`` becomes the TCP and its branch's
-    polyline is extended to it (the skeleton stops at the visible tip, short of the hidden end; the
-    rest lengths then span the whole object, as tracking pins held keypoints at the TCPs).
+    the closed grippers; gate_m: m, one or (H,) one per TCP. The leaf nearest a TCP within its gate
+    becomes the TCP and its branch's polyline is extended to it (the skeleton stops at the visible
+    tip, short of the hidden end; the rest lengths then span the whole object, as tracking pins held
+    keypoints at the TCPs).
     Returns the new (nodes, branches).
     """
     leaves = np.nonzero(kinds == LEAF)[0]
@@ -161,7 +163,7 @@ def snap_held_leaves(
         return nodes, branches
     C = np.linalg.norm(held[:, None, :] - nodes[leaves][None, :, :], axis=2)
     r, c = linear_sum_assignment(C)
-    ok = C[r, c] <= gate_m
+    ok = C[r, c] <= np.broadcast_to(np.asarray(gate_m, np.float64), (len(held),))[r]
     nodes = nodes.copy()
     moved = dict(zip(leaves[c[ok]].tolist(), held[r[ok]], strict=True))
     out = []
@@ -184,6 +186,7 @@ def initialise_1d(
     obj: ObjectClass,
     root_hint: np.ndarray | None = None,
     held: np.ndarray | None = None,
+    held_gate: np.ndarray | None = None,
 ) -> Initialisation:
     """Initialise a 1D object (rope, branched rope) from its segmented cloud (N, 3) float64 m world.
 
@@ -194,7 +197,8 @@ def initialise_1d(
     edges chain each branch node to node; rest length of a branch = its 3D arc length / its edge count. Keypoint 0
     is the leaf at ``root_hint`` (3,) m or the image's leftmost (``root_leaf``); branches are
     numbered depth-first, leftmost (image) first at junctions. held: (H, 3) m TCPs of closed
-    grippers: the ends they hold are placed there (``snap_held_leaves``). The solved free keypoints
+    grippers: the ends they hold are placed there (``snap_held_leaves``; held_gate (H,) m: how far from each
+    TCP its end may be seen, default ``grasp_gate_m``). The solved free keypoints
     are finally moved to the ridge of the tube's visible skin (``snap_to_ridge``): where across the
     tube a keypoint ends is otherwise set by depth noise (3 mm spread over camera seeds, 1.5 after).
     """
@@ -203,7 +207,8 @@ def initialise_1d(
         raise InitialisationError("no skeleton branch in the segmented cloud")
     nodes, kinds, branches = sk.nodes, sk.kinds, sk.branches
     if held is not None:
-        nodes, branches = snap_held_leaves(nodes, kinds, branches, held, params.grasp_gate_m)
+        gate = params.grasp_gate_m if held_gate is None else held_gate
+        nodes, branches = snap_held_leaves(nodes, kinds, branches, held, gate)
     Nn = len(nodes)
     n_free = max(0, params.n_keypoints_1d - Nn)
     polys = [p for _, _, p in branches]
@@ -331,11 +336,13 @@ def initialise(
     kind: str | None = None,
     root_hint: np.ndarray | None = None,
     held: np.ndarray | None = None,
+    held_gate: np.ndarray | None = None,
 ) -> Initialisation:
     """Classify (unless ``kind`` "1d"/"2d" is given) and initialise keypoints on a segmented cloud (N, 3) m.
 
     root_hint: (3,) m, e.g. the first gripper's TCP: a 1D object's keypoint 0 is the end there.
-    held: (H, 3) m TCPs of the closed grippers: the object is held there (1D ends are put there).
+    held: (H, 3) m TCPs of the closed grippers: the object is held there (1D ends are put there; held_gate (H,) m:
+    how far from each TCP its end may be seen, default ``grasp_gate_m``).
     Raises InitialisationError when the cloud is too small or has no usable skeleton / contour.
     """
     if len(cloud) < params.min_object_points:
@@ -344,5 +351,5 @@ def initialise(
     if kind is not None:
         obj = ObjectClass(kind, obj.line_ratio, obj.plane_ratio)
     if obj.kind == "1d":
-        return initialise_1d(cloud, K, T_world_cam, params, obj, root_hint, held)
+        return initialise_1d(cloud, K, T_world_cam, params, obj, root_hint, held, held_gate)
     return initialise_2d(cloud, K, T_world_cam, params, obj, held)

@@ -324,6 +324,23 @@ class LivePipeline:
                 return out
         return seg
 
+    def grasp_gates(self, cloud: np.ndarray, arm: np.ndarray | None, tcp: np.ndarray | None) -> np.ndarray | None:
+        """How far (G,) m from each TCP tcp (G, 3) m the end of a 1D object held there may be seen in the cloud
+        (N, 3) m: ``grasp_gate_m``, or ``hand_hidden_m`` where the cloud's nearest point lies within that and
+        the straight way from it to the TCP is hidden behind the arm (arm: decimated mask; ``gaps_hidden``),
+        as a hand seen across its fingers hides more of the rope it holds. None without TCPs, arm or cloud."""
+        if tcp is None or arm is None or len(cloud) == 0 or self.kind == "2d":
+            return None
+        p = self.seg_params
+        tcp = np.asarray(tcp, np.float64).reshape(-1, 3)
+        d, i = cKDTree(cloud).query(tcp)
+        gate = np.full(len(tcp), p.grasp_gate_m)
+        far = np.nonzero((d > p.grasp_gate_m) & (d <= p.hand_hidden_m))[0]
+        if len(far):
+            hid = gaps_hidden(cloud[i[far]], tcp[far], arm, self.K_seg, self.T, p.voxel_m)
+            gate[far[hid]] = p.hand_hidden_m
+        return gate
+
     def _grow_free(
         self, depth: np.ndarray, seg: Segmentation, arm: np.ndarray | None, held: np.ndarray
     ) -> Segmentation:
@@ -419,7 +436,8 @@ class LivePipeline:
             return self._empty("waiting", n, "waiting for the arms to move the object")
         seg, cloud = self.initial_cloud(refs, depth, seg, arm, tcp, closed, full)
         try:
-            ini, res = self.tracker.initialise(cloud, tcp=tcp, kind=self.kind, gripper_closed=closed)
+            ini, res = self.tracker.initialise(cloud, tcp=tcp, kind=self.kind, gripper_closed=closed,
+                                               grasp_gate=self.grasp_gates(cloud, arm, tcp))
         except InitialisationError as e:
             self.init_failures += 1
             self.last_init_error = str(e)

@@ -310,28 +310,33 @@ class Tracker:
         tcp: np.ndarray | None = None,
         kind: str | None = None,
         gripper_closed: np.ndarray | None = None,
+        grasp_gate: np.ndarray | None = None,
     ) -> tuple[Initialisation, FrameResult]:
         """Initialise on a segmented cloud (M, 3) m; tcp (G, 3) m of the grippers gives grasp indices
         (and keypoint 0 at the first gripper's end); the ends (corners) held by the closed grippers
         (gripper_closed (G,) bool; None: every TCP within ``grasp_gate_m`` of an end or a corner) are placed
-        at their TCPs.
+        at their TCPs. grasp_gate (G,) m: how far from each TCP a 1D object's end held there may be seen
+        (default ``grasp_gate_m``; farther where the hand hides more of it: ``TrackingPipeline``).
 
         Raises tracking.init.InitialisationError when the cloud cannot be initialised.
         """
         self.reset()
         tcps = None if tcp is None else np.asarray(tcp, np.float64).reshape(-1, 3)
         hint = None if tcps is None or len(tcps) == 0 else tcps[0]
+        held_gate = None
         if tcps is None:
             held = None
-        elif gripper_closed is not None:
-            held = tcps[np.asarray(gripper_closed, bool)]
-        else:  # no gripper states: an end (a cloth's corner) within grasp_gate_m of a TCP is held there (tracking
+        else:
+            # no gripper states: an end (a cloth's corner) within grasp_gate_m of a TCP is held there (tracking
             # pins it there: its grasp index), so the rest lengths span the part hidden between the fingers
-            held = tcps
+            sel = np.ones(len(tcps), bool) if gripper_closed is None else np.asarray(gripper_closed, bool)
+            held = tcps[sel]
+            if grasp_gate is not None:
+                held_gate = np.asarray(grasp_gate, np.float64).reshape(-1)[sel]
         # the ablation switches are of the tracking step (the paper's Table II): every variant starts from the
         # full method's initialisation
         full = replace(self.params, use_anchors=True, use_edge_projection=True, use_cloud_projection=True)
-        ini = initialise(cloud, self.K, self.T, full, kind, root_hint=hint, held=held)
+        ini = initialise(cloud, self.K, self.T, full, kind, root_hint=hint, held=held, held_gate=held_gate)
         self.topology = ini.topology
         self.keypoints = ini.keypoints
         if tcp is not None:
