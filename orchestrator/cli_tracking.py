@@ -190,16 +190,18 @@ def stage_medians(stages: list[dict[str, float]]) -> dict[str, float]:
     return {k: round(float(np.median([st[k] for st in stages if k in st])), 3) for k in names}
 
 
-def _renumbering(topology: Any, new: Any, X: np.ndarray, last: np.ndarray) -> np.ndarray | None:
+def _renumbering(topology: Any, new: Any, X: np.ndarray, last: np.ndarray, span_tol: float) -> np.ndarray | None:
     """The order (N,) int64 that puts a re-initialised track's keypoints X (N, 3) m (topology ``new``) in the
     clip's numbering (``topology``): the identity or the chains' reversal, whichever keeps the edges and lies
     nearer the last keypoints (N, 3) m. None when the edges differ (another split of the keypoints among the
-    branches): the clip's topology cannot hold these keypoints, and the frames are filled from its own track."""
+    branches) or the rest lengths add up to more than span_tol (a fraction) away from the clip's (a cloth seen
+    edge-on gives a grid squeezed into its strip): the clip's topology cannot hold these keypoints, and the
+    frames are filled from its own track."""
     def edge_set(e: np.ndarray) -> set[tuple[int, ...]]:
         return {tuple(sorted(p)) for p in np.asarray(e).tolist()}
 
     edges = edge_set(topology.edges)
-    if edge_set(new.edges) != edges:
+    if edge_set(new.edges) != edges or abs(float(np.sum(new.rest)) / float(np.sum(topology.rest)) - 1.0) > span_tol:
         return None
     N = len(X)
     best, cost = None, np.inf
@@ -262,7 +264,7 @@ def track_sequence(
         kp, g = out.keypoints, out.grasp_idx
         same = topology is not None and len(kp) == topology.n_keypoints
         if same and out.topology is not topology:  # re-initialised after a loss: keypoints numbered anew
-            perm = _renumbering(topology, out.topology, kp, last)
+            perm = _renumbering(topology, out.topology, kp, last, params.relift_span_tol)
             same = perm is not None
             if perm is not None:
                 kp, g = kp[perm], np.where(g >= 0, np.argsort(perm)[np.maximum(g, 0)], -1)

@@ -105,20 +105,24 @@ def test_prepare_from_the_recorded_image_equals_prepare_from_metres() -> None:
 
 def test_a_reinitialised_track_is_put_in_the_clips_numbering_or_refused() -> None:
     # after a loss the tracker initialises again: a rope's chain may come numbered from its other end (put back
-    # in the clip's order), a branched rope's keypoints split otherwise among its branches (refused: filled)
+    # in the clip's order), a branched rope's keypoints split otherwise among its branches or rest lengths that
+    # add up to another length (refused: filled)
     from orchestrator.cli_tracking import _renumbering
     from tracking.init import Topology
 
     n = 6
     E = np.stack([np.arange(n - 1), np.arange(1, n)], axis=1)
     topo = Topology("1d", E, np.full(n - 1, 0.04), np.array([0, n - 1]), np.zeros(2, np.int64), [np.arange(n)])
-    again = Topology("1d", E[::-1, ::-1].copy(), np.full(n - 1, 0.05), np.array([0, n - 1]), np.zeros(2, np.int64),
+    again = Topology("1d", E[::-1, ::-1].copy(), np.full(n - 1, 0.041), np.array([0, n - 1]), np.zeros(2, np.int64),
                      [np.arange(n)])
     last = np.stack([np.arange(n) * 0.04, np.zeros(n), np.zeros(n)], axis=1)
     X = last[::-1] + 0.003  # the same rope, numbered from the other end
-    perm = _renumbering(topo, again, X, last)
+    perm = _renumbering(topo, again, X, last, 0.06)
     assert perm is not None and np.allclose(X[perm], last + 0.003)
-    assert np.array_equal(_renumbering(topo, again, last, last), np.arange(n))
+    assert np.array_equal(_renumbering(topo, again, last, last, 0.06), np.arange(n))
     Y = Topology("1d", np.array([[0, 1], [1, 2], [2, 3], [1, 4], [4, 5]]), np.full(5, 0.04), np.array([0, 3, 5, 1]),
                  np.zeros(4, np.int64), [np.array([0, 1]), np.array([1, 2, 3]), np.array([1, 4, 5])])
-    assert _renumbering(topo, Y, X, last) is None
+    assert _renumbering(topo, Y, X, last, 0.06) is None
+    short = Topology("1d", E.copy(), np.full(n - 1, 0.03), np.array([0, n - 1]), np.zeros(2, np.int64), [np.arange(n)])
+    assert _renumbering(topo, short, X[::-1], last, 0.06) is None  # 25 % shorter
+    assert _renumbering(topo, short, X[::-1], last, 0.3) is not None
