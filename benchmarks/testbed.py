@@ -38,8 +38,8 @@ some sequences exact keypoints miss the CD / F<10 targets.
 
 The default set (``--set all``) is the five-sequence development set plus the variants below (camera
 from the side and from above, rope lengths 0.8-1.0 m, radii 4-7 mm, colours, the three speeds, other
-seeds; 57 sequences); generating it the first time takes 70-160 min and ~8 GB (1.5-3.5 min a sequence on this
-2-core machine), tracking and scoring it ~8 min here.
+seeds; 73 sequences); generating it the first time takes 80-200 min and ~11 GB (1-3.5 min a sequence on this
+2-core machine), tracking and scoring it ~11 min here.
 """
 
 from __future__ import annotations
