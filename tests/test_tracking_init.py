@@ -251,3 +251,24 @@ def test_extended_leaf_is_centred_on_the_tube_not_on_a_tilted_axis() -> None:
     assert abs(tip[1]) < 0.0005, tip
     off_axis = _extend_leaf(leaf, leaf - 0.02 * tilt, tree, cloud, 0.03, 0.0)
     assert abs(off_axis[1]) > 0.0012  # the axis alone
+
+
+def test_a_branch_held_across_a_hidden_gap_gets_that_gap_as_one_edge() -> None:
+    """Keypoints spread evenly along a branch, unless an end was put at a TCP across a gap the hand hides: that
+    straight segment is one edge from the seen tip (its chord the rest length), the rest spread as before."""
+    from tracking.init import polyline_arc, space_branch
+
+    seen = np.stack([np.linspace(0.0, 0.3, 31), np.zeros(31), np.zeros(31)], axis=1)  # 30 cm seen, x = 0 .. 0.3
+    tcp = np.array([0.3, 0.0, 0.1])  # held 10 cm above the seen tip
+    poly = np.concatenate([seen, tcp[None]])
+    X, rest = space_branch(poly, 4)
+    assert X.shape == (4, 3) and rest.shape == (5,)
+    np.testing.assert_allclose(rest, polyline_arc(poly)[-1] / 5)
+    X, rest = space_branch(poly, 4, (False, True))
+    np.testing.assert_allclose(X[-1], seen[-1])  # the seen tip is a keypoint
+    np.testing.assert_allclose(rest, [0.075, 0.075, 0.075, 0.075, 0.1])
+    np.testing.assert_allclose(X[:, 0], [0.075, 0.15, 0.225, 0.3])
+    Xr, rr = space_branch(poly[::-1], 4, (True, False))  # the same branch from the other end
+    np.testing.assert_allclose(Xr, X[::-1], atol=1e-12)
+    np.testing.assert_allclose(rr, rest[::-1])
+    np.testing.assert_allclose(space_branch(poly[:2], 3, (True, True))[1], np.full(4, 0.0025))  # no seen part

@@ -178,6 +178,24 @@ def snap_held_leaves(
     return nodes, out
 
 
+def space_branch(poly: np.ndarray, m: int, gaps: tuple[bool, bool] = (False, False)) -> tuple[np.ndarray, np.ndarray]:
+    """The m free keypoints (m, 3) m along a branch's polyline poly (P, 3) m, start to end, and the rest lengths
+    (m + 1,) m of the edges from its start node through them to its end node: evenly by arc length. Where an end
+    was held across a gap the hand hides (gaps: start, end; the polyline's first or last segment is then the
+    straight way from the seen tip to the TCP), that segment is an edge of its own from the seen tip, its chord
+    its rest length: keypoints spread evenly over it would lie off the rope, which arcs into the fingers."""
+    s = int(gaps[0] and m >= 1 and len(poly) > 2)
+    e = int(gaps[1] and m - s >= 1 and len(poly) - s > 2)
+    core = poly[s : len(poly) - e]
+    arc = polyline_arc(core)
+    n = m - s - e
+    t = arc[-1] * np.arange(1, n + 1) / (n + 1)
+    free = [core[:s], np.stack([np.interp(t, arc, core[:, i]) for i in range(3)], axis=1), core[len(core) - e :]]
+    rest = [np.linalg.norm(poly[1] - poly[0], keepdims=True)[:s], np.full(n + 1, arc[-1] / (n + 1)),
+            np.linalg.norm(poly[-1] - poly[-2], keepdims=True)[:e]]
+    return np.concatenate(free).reshape(-1, 3), np.concatenate(rest)
+
+
 def initialise_1d(
     cloud: np.ndarray,
     K: np.ndarray,
@@ -206,9 +224,11 @@ def initialise_1d(
     if len(sk.branches) == 0:
         raise InitialisationError("no skeleton branch in the segmented cloud")
     nodes, kinds, branches = sk.nodes, sk.kinds, sk.branches
+    seen = nodes
     if held is not None:
         gate = params.grasp_gate_m if held_gate is None else held_gate
         nodes, branches = snap_held_leaves(nodes, kinds, branches, held, gate)
+    far = np.linalg.norm(nodes - seen, axis=1) > params.grasp_gate_m  # held across a gap the hand hides
     Nn = len(nodes)
     n_free = max(0, params.n_keypoints_1d - Nn)
     polys = [p for _, _, p in branches]
@@ -230,9 +250,7 @@ def initialise_1d(
         start, end = (b, a) if rev else (a, b)
         chain = [int(node_kp[start])]
         poly = polys[k][::-1] if rev else polys[k]
-        arc = polyline_arc(poly)
-        t = arc[-1] * np.arange(1, counts[k] + 1) / (counts[k] + 1)
-        free = np.stack([np.interp(t, arc, poly[:, i]) for i in range(3)], axis=1)
+        free, d = space_branch(poly, int(counts[k]), (bool(far[start]), bool(far[end])))
         for x in free:
             X.append(x)
             chain.append(len(X) - 1)
@@ -240,9 +258,8 @@ def initialise_1d(
             X.append(nodes[end])
             node_kp[end] = len(X) - 1
         chain.append(int(node_kp[end]))
-        d = lengths[k] / (len(chain) - 1)
         edges += list(zip(chain[:-1], chain[1:], strict=True))
-        rest += [d] * (len(chain) - 1)
+        rest += d.tolist()
         chains.append(np.array(chain, np.int64))
     Xa = np.array(X)
     E = np.array(edges, np.int64)
