@@ -212,7 +212,8 @@ def initialise_1d(
     length (``allocate_keypoints``) and the warm start places them evenly along its skeleton
     (the paper's FPS warm start gives seed-dependent per-branch counts and spacings, which
     Gauss-Seidel evens out only slowly along a chain: repeated initialisations then disagree);
-    edges chain each branch node to node; rest length of a branch = its 3D arc length / its edge count. Keypoint 0
+    edges chain each branch node to node; rest length of a branch = its 3D arc length / its edge count (but a
+    gap the hand hides, one edge: ``space_branch``). Keypoint 0
     is the leaf at ``root_hint`` (3,) m or the image's leftmost (``root_leaf``); branches are
     numbered depth-first, leftmost (image) first at junctions. held: (H, 3) m TCPs of closed
     grippers: the ends they hold are placed there (``snap_held_leaves``; held_gate (H,) m: how far from each

@@ -328,7 +328,8 @@ class LivePipeline:
         """How far (G,) m from each TCP tcp (G, 3) m the end of a 1D object held there may be seen in the cloud
         (N, 3) m: ``grasp_gate_m``, or ``hand_hidden_m`` where the cloud's nearest point lies within that and
         the straight way from it to the TCP is hidden behind the arm (arm: decimated mask; ``gaps_hidden``),
-        as a hand seen across its fingers hides more of the rope it holds. None without TCPs, arm or cloud."""
+        as a hand seen across its fingers hides more of the rope it holds. None without TCPs, arm or cloud, or
+        for a cloth."""
         if tcp is None or arm is None or len(cloud) == 0 or self.kind == "2d":
             return None
         p = self.seg_params

@@ -316,7 +316,7 @@ class Tracker:
         (and keypoint 0 at the first gripper's end); the ends (corners) held by the closed grippers
         (gripper_closed (G,) bool; None: every TCP within ``grasp_gate_m`` of an end or a corner) are placed
         at their TCPs. grasp_gate (G,) m: how far from each TCP a 1D object's end held there may be seen
-        (default ``grasp_gate_m``; farther where the hand hides more of it: ``TrackingPipeline``).
+        (default ``grasp_gate_m``; farther where the hand hides more of it: ``LivePipeline.grasp_gates``).
 
         Raises tracking.init.InitialisationError when the cloud cannot be initialised.
         """
@@ -327,8 +327,9 @@ class Tracker:
         if tcps is None:
             held = None
         else:
-            # no gripper states: an end (a cloth's corner) within grasp_gate_m of a TCP is held there (tracking
-            # pins it there: its grasp index), so the rest lengths span the part hidden between the fingers
+            # the closed grippers' TCPs; without gripper states every TCP: an end (a cloth's corner) within the gate
+            # of one is held there (tracking pins it there: its grasp index), so the rest lengths span the part
+            # hidden between the fingers
             sel = np.ones(len(tcps), bool) if gripper_closed is None else np.asarray(gripper_closed, bool)
             held = tcps[sel]
             if grasp_gate is not None:
