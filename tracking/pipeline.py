@@ -318,11 +318,20 @@ class LivePipeline:
         if now.sum() > reached.sum():
             return out
         if arm is not None and len(out.points) > len(seg.points):
-            behind = ~reached & (d < d0) & (d <= p.hand_hidden_m)
-            if behind.any() and gaps_hidden(out.points[i[behind]], held[behind], arm, self.K_seg, self.T,
-                                             p.voxel_m).any():
+            if self._hand_hides(out.points, held, arm, i, ~reached & (d < d0) & (d <= p.hand_hidden_m)).any():
                 return out
         return seg
+
+    def _hand_hides(
+        self, points: np.ndarray, held: np.ndarray, arm: np.ndarray, i: np.ndarray, ask: np.ndarray
+    ) -> np.ndarray:
+        """(G,) bool: for the TCPs held (G, 3) m picked by ask (G,) bool, whether the arm's pixels (arm: decimated
+        mask) cover the straight way to the TCP from its nearest point of points (N, 3) m, index i (G,)
+        (``gaps_hidden``: the hand hides the end it holds); False for the others."""
+        out = np.zeros(len(held), bool)
+        if ask.any():
+            out[ask] = gaps_hidden(points[i[ask]], held[ask], arm, self.K_seg, self.T, self.seg_params.voxel_m)
+        return out
 
     def grasp_gates(self, cloud: np.ndarray, arm: np.ndarray | None, tcp: np.ndarray | None) -> np.ndarray | None:
         """How far (G,) m from each TCP tcp (G, 3) m the end of a 1D object held there may be seen in the cloud
@@ -335,12 +344,8 @@ class LivePipeline:
         p = self.seg_params
         tcp = np.asarray(tcp, np.float64).reshape(-1, 3)
         d, i = cKDTree(cloud).query(tcp)
-        gate = np.full(len(tcp), p.grasp_gate_m)
-        far = np.nonzero((d > p.grasp_gate_m) & (d <= p.hand_hidden_m))[0]
-        if len(far):
-            hid = gaps_hidden(cloud[i[far]], tcp[far], arm, self.K_seg, self.T, p.voxel_m)
-            gate[far[hid]] = p.hand_hidden_m
-        return gate
+        far = (d > p.grasp_gate_m) & (d <= p.hand_hidden_m)
+        return np.where(self._hand_hides(cloud, tcp, arm, i, far), p.hand_hidden_m, p.grasp_gate_m)
 
     def _grow_free(
         self, depth: np.ndarray, seg: Segmentation, arm: np.ndarray | None, held: np.ndarray
