@@ -194,3 +194,23 @@ def test_hidden_keypoint_is_not_pulled_beyond_its_edge_from_a_held_neighbour() -
     loose = dataclasses.replace(P, hidden_stretch=1.0)  # a 4 cm reach: the seen rope's start is within it
     pulled = solve_keypoints(X0, edges, rest, held, X0[held], cloud, 1, loose, hidden=hidden)
     assert abs(pulled[1, 1]) < 1e-9
+
+
+def test_relax_hidden_restores_hidden_edges_and_moves_nothing_else() -> None:
+    from tracking.solver import relax_hidden
+
+    # a 4 x 4 grid of 5 cm edges whose last column is pressed 3 cm towards the third (hidden, cloud-less)
+    R = C = 4
+    a, b = np.meshgrid(np.linspace(0.0, 0.15, C), np.linspace(0.0, 0.15, R))
+    X = np.stack([a, b, np.zeros_like(a)], axis=-1).reshape(-1, 3)
+    edges, rest = grid_topology(R, C, 0.05, 0.05)
+    hidden = np.zeros(R * C, bool)
+    hidden[C - 1 :: C] = True
+    X[hidden, 0] -= 0.03
+    before = edge_rmse_mm(X, edges, rest)
+    out = relax_hidden(X, edges, rest, hidden, 10, P)
+    assert np.array_equal(out[~hidden], X[~hidden])  # the seen keypoints stay put
+    assert before > 10.0 and edge_rmse_mm(out, edges, rest) < 1.0
+    assert np.allclose(out[hidden, 0], 0.15, atol=2e-3)  # the hidden column back at its rest distance
+    assert relax_hidden(X, edges, rest, hidden, 0, P) is X  # off
+    assert relax_hidden(X, edges, rest, np.zeros(R * C, bool), 10, P) is X  # nothing hidden

@@ -286,3 +286,40 @@ def test_a_held_corners_hidden_neighbours_keep_their_place_in_the_grippers_frame
     X = res.keypoints
     assert X[6, 2] > 0.01  # the neighbour along y turned up with the hand (towards (0, 0, 0.05))
     assert np.allclose(X[0], tcp[0]) and np.abs(X[~hidden, 2]).max() < 0.005  # the rest stays on the cloud
+
+
+@pytest.mark.parametrize("sweeps", [0, 10])
+def test_a_cloths_hidden_part_keeps_its_edge_lengths(sweeps: int) -> None:
+    """A cloth whose last two columns are out of sight, pulled towards the seen part by a soft anchor (a corner
+    detected on the visible contour, where the sheet turns away): the frame's solve leaves their edges short; the
+    relaxation after it (``hidden_relax_sweeps``) gives them their lengths back, the seen keypoints and the held
+    corner staying where the solve put them."""
+    from dataclasses import replace
+
+    from tracking.init import cloth_topology
+    from tracking.metrics import edge_rmse_mm
+    from tracking.tracker import track_frame
+
+    R = C = 6
+    a, b = np.meshgrid(np.linspace(0.0, 0.25, C), np.linspace(0.0, 0.25, R))
+    X0 = np.stack([a, b, np.zeros_like(a)], axis=-1).reshape(-1, 3)
+    topo = cloth_topology(X0, R, C)  # 5 cm edges
+    u, v = np.meshgrid(np.linspace(0.0, 0.15, 61), np.linspace(0.0, 0.25, 101))
+    seen = np.stack([u.ravel(), v.ravel(), np.zeros(u.size)], axis=1)  # columns 0-3
+    hidden = X0[:, 0] > 0.16
+    corner = R * C - 1  # the free bottom right corner, hidden, drawn towards the seen edge
+    soft = (np.array([corner]), np.array([[0.17, 0.25, 0.0]]), np.array([0.2]))
+    params = replace(P, hidden_relax_sweeps=sweeps)
+    no_det = (np.zeros((0, 3)), np.zeros(0, np.int64))
+    X, _ = track_frame(X0, topo, seen, *no_det, params, X0[[C - 1]], np.array([C - 1]), hidden=hidden, soft=soft)
+    assert np.allclose(X[C - 1], X0[C - 1])  # held
+    inside = hidden[topo.edges].all(axis=1)  # the edges between hidden keypoints
+    err = edge_rmse_mm(X, topo.edges[inside], topo.rest[inside])
+    if sweeps:
+        ref, _ = track_frame(X0, topo, seen, *no_det, replace(P, hidden_relax_sweeps=0), X0[[C - 1]],
+                             np.array([C - 1]), hidden=hidden, soft=soft)
+        assert np.array_equal(X[~hidden], ref[~hidden])  # only the hidden keypoints moved
+        assert err < 1.2
+        assert edge_rmse_mm(X, topo.edges, topo.rest) < edge_rmse_mm(ref, topo.edges, topo.rest)
+    else:
+        assert err > 2.0

@@ -123,6 +123,10 @@ class TrackingParams:
         seen rope's direction into the hand instead of cutting a straight chord; more fights the edge lengths.
       hidden_stretch: nor is such a hidden keypoint projected onto a point farther from a fixed neighbour (the
         held end next to it) than its edge's rest length times 1 + this: the hand hides more rope than one edge.
+      hidden_relax_sweeps: after a cloth's frame is solved, this many sweeps of its edge projections move only
+        its hidden keypoints (the seen and the held ones fixed): a part of the sheet out of sight keeps its edge
+        lengths instead of staying pressed onto the seen surface beside it, where the frame's cloud projections
+        left it (a twisted cloth's far half behind its edge-on strip: edges off by 10-30 mm). 0: off.
       exit_keypoints, exit_stiffness: a 1D keypoint within exit_keypoints edges of a held one and hidden behind
         the arm is pulled exit_stiffness of the way (a soft anchor) to where it was last seen in that gripper's
         frame: the fingers clamp the rope, so it leaves them the way it did, in an arc the smoothest curve through
@@ -216,6 +220,7 @@ class TrackingParams:
     hidden_reach: float = 0.5
     hidden_bend: float = 0.1
     hidden_stretch: float = 0.1
+    hidden_relax_sweeps: int = 10
     exit_keypoints: int = 2
     exit_keypoints_2d: int = 1
     exit_stiffness: float = 0.2

@@ -6,6 +6,8 @@ class; the iterations run compiled (``tracking.kernels.solve_iterations``).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -96,6 +98,21 @@ def solve_keypoints(
           else (np.zeros(0, np.int64), np.zeros(0))),  # read for hidden keypoints only
     )
     return X
+
+
+def relax_hidden(
+    X: np.ndarray, edges: np.ndarray, rest: np.ndarray, movable: np.ndarray, sweeps: int, params: TrackingParams,
+    classes: list[np.ndarray] | None = None,
+) -> np.ndarray:
+    """Keypoints X (N, 3) m after ``sweeps`` Gauss-Seidel sweeps of the edge projections (edges (E, 2), rest (E,) m)
+    that move only the movable (N,) bool ones: the others are fixed where they are, no cloud, no anchors.
+    Returns (N, 3) float64 m (X itself when nothing can move)."""
+    movable = np.asarray(movable, bool)
+    if sweeps <= 0 or not movable.any():
+        return X
+    fixed = np.flatnonzero(~movable)
+    only_edges = replace(params, use_anchors=True, use_cloud_projection=False)
+    return solve_keypoints(X, edges, rest, fixed, X[fixed], np.zeros((0, 3)), sweeps, only_edges, classes)
 
 
 def fixed_neighbours(

@@ -20,7 +20,7 @@ from tracking.kernels import warm_up
 from tracking.metrics import chamfer_mm, edge_rmse_mm
 from tracking.params import TrackingParams
 from tracking.skeleton import LEAF
-from tracking.solver import chain_neighbours, hop_neighbours, solve_keypoints
+from tracking.solver import chain_neighbours, hop_neighbours, relax_hidden, solve_keypoints
 from tracking.tangle import chain_reversals, relift_chains, relift_grid, tangled_cells, unfold_chains
 
 
@@ -228,6 +228,11 @@ def track_frame(
         weight, hidden,
         chain_neighbours(topology.chains, len(X_prev)) if hidden is not None and topology.kind == "1d" else None,
     )
+    if topology.kind == "2d" and hidden is not None and params.use_edge_projection:
+        movable = np.array(hidden, bool)
+        movable[aidx[weight >= 1.0]] = False  # a held corner stays at its TCP
+        X = relax_hidden(X, topology.edges, topology.rest, movable, params.hidden_relax_sweeps, params,
+                         topology.colours)
     return X, int((m >= 0).sum())
 
 
