@@ -65,16 +65,19 @@ def panda_models() -> tuple:
 
 @functools.lru_cache(maxsize=1)
 def panda_link_meshes() -> tuple[LinkMesh, ...]:
-    """The Panda's collision geometry (≈2.3k triangles) as plain arrays, loaded once."""
-    import open3d as o3d
+    """The Panda's collision geometry (≈2.3k triangles) as plain arrays, loaded once.
 
+    The meshes are the ones pinocchio loaded into the collision model (coal BVH models, ``meshScale`` applied
+    at load), copied out: reading the files again would take a mesh library (open3d: ~1 s to import).
+    """
     _, cmodel = panda_models()
     out = []
     for g in cmodel.geometryObjects:
         if g.meshPath.endswith((".stl", ".STL", ".obj", ".dae")):
-            m = o3d.io.read_triangle_mesh(g.meshPath)
-            v = np.asarray(m.vertices, dtype=np.float64) * np.asarray(g.meshScale)
-            f = np.asarray(m.triangles, dtype=np.int32)
+            bvh = g.geometry
+            v = np.array(bvh.vertices(), dtype=np.float64).reshape(-1, 3)
+            tris = [bvh.tri_indices(i) for i in range(bvh.num_tris)]
+            f = np.array([(t[0], t[1], t[2]) for t in tris], dtype=np.int32).reshape(-1, 3)
         else:  # finger pads are boxes
             v, f = box_mesh((0.0, 0.0, 0.0), np.asarray(g.geometry.halfSide, dtype=np.float64))
         out.append(LinkMesh(g.name, int(g.parentJoint), g.placement.homogeneous.copy(), v, f))

@@ -221,6 +221,16 @@ def test_savgol_quadratic_matches_scipy() -> None:
         np.testing.assert_allclose(_savgol_quadratic(p, w), savgol_filter(p, w, 2, axis=0, mode="interp"), atol=1e-9)
 
 
+def test_savgol_weights_are_scipys_bit_for_bit() -> None:
+    """The weights are solved as scipy solves them (odd and even windows), so no track changes by a bit."""
+    from scipy.signal import savgol_coeffs
+
+    from tracking.anchors import _savgol_weights
+
+    for w in range(3, 64):
+        np.testing.assert_array_equal(_savgol_weights(w)[0], savgol_coeffs(w, 2), err_msg=f"window {w}")
+
+
 def test_leaf_on_axis_removes_the_skeleton_tips_lateral_offset() -> None:
     from tracking.anchors import _leaf_on_axis
 

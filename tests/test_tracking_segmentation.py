@@ -676,3 +676,20 @@ def test_tracking_regains_a_hanging_part_its_background_holds():
     off = complete_thin_parts(depth, seg, K, T, TrackingParams(track_attach_iterations=0), None,
                               support_plane(table, K, T, P))
     assert off is seg
+
+
+def test_voxel_downsample_is_open3ds_grid_and_centroids_bit_for_bit() -> None:
+    """The compiled voxel grid (no open3d import on the tracking path) keeps open3d's voxels and centroids."""
+    import open3d as o3d
+
+    from tracking.segmentation import voxel_downsample
+
+    rng = np.random.default_rng(11)
+    pts = np.concatenate([rng.normal(0.4, 0.05, (3000, 3)), rng.uniform(-0.3, 0.9, (500, 3))])
+    for voxel in (0.003, 0.0047, 0.009):
+        got = voxel_downsample(pts, voxel)
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+        want = np.asarray(pcd.voxel_down_sample(voxel).points)
+        assert got.shape == want.shape
+        np.testing.assert_array_equal(got[np.lexsort(got.T)], want[np.lexsort(want.T)])
+    assert voxel_downsample(np.zeros((0, 3)), 0.005).shape == (0, 3)

@@ -355,10 +355,17 @@ def contour_3d(
 
 @lru_cache(maxsize=64)
 def _savgol_weights(window: int) -> tuple[np.ndarray, np.ndarray]:
-    """Savitzky-Golay smoothing weights (window,) for a quadratic, and the Vandermonde matrix (window, 3)."""
-    from scipy.signal import savgol_coeffs  # here: importing scipy.signal costs ~0.4 s, once per process
+    """Savitzky-Golay smoothing weights (window,) for a quadratic, and the Vandermonde matrix (window, 3).
 
-    return savgol_coeffs(window, 2), np.vander(np.arange(window, dtype=np.float64), 3)
+    The weights are the least-squares quadratic's value at the window's centre, solved as
+    ``scipy.signal.savgol_coeffs(window, 2)`` solves it (bit for bit): importing scipy.signal
+    imports scipy.stats, ~0.4 s of every ``trackdeform track`` command's start-up.
+    """
+    pos = window // 2 if window % 2 else window / 2 - 0.5  # an even window's centre lies between two samples
+    x = np.arange(-pos, window - pos, dtype=np.float64)[::-1]  # convolution order
+    unit = np.array([1.0, 0.0, 0.0])
+    weights = np.linalg.lstsq(x ** np.arange(3).reshape(-1, 1), unit, rcond=None)[0]
+    return weights, np.vander(np.arange(window, dtype=np.float64), 3)
 
 
 def _savgol_quadratic(p: np.ndarray, window: int) -> np.ndarray:

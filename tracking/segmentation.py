@@ -17,7 +17,6 @@ from functools import lru_cache
 
 import cv2
 import numpy as np
-import open3d as o3d
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -147,6 +146,8 @@ def render_arm_depth(
         if not need.any():
             return out
         dirs, dirs_z, triangles = dirs[need], dirs_z[need], np.asarray(triangles)[reach]
+    import open3d as o3d  # here: ~1 s to import, and only a mesh crossing the camera plane is raycast
+
     rays = np.empty((dirs_z.size, 6), np.float32)
     rays[:, :3] = t
     rays[:, 3:] = dirs.reshape(-1, 3)
@@ -250,11 +251,19 @@ def render_arm_mask(
 
 
 def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """points: (N, 3) float64, m -> (M, 3) float64 voxel centroids (open3d), m."""
+    """points: (N, 3) float64, m -> (M, 3) float64 voxel centroids, m, in the voxels' (x, y, z) order.
+
+    open3d's ``voxel_down_sample`` grid (voxels floor((p - min + voxel_m / 2) / voxel_m)) and centroids (each
+    voxel's points summed in their order), bit for bit, on ``tracking.kernels.voxel_centroids``' grouping:
+    importing open3d is ~1 s of a ``trackdeform track`` command's start-up.
+    """
     if len(points) == 0:
         return np.zeros((0, 3))
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points, np.float64)))
-    return np.asarray(pcd.voxel_down_sample(voxel_m).points)
+    points = np.ascontiguousarray(points, np.float64)
+    origin = points.min(axis=0) - 0.5 * voxel_m
+    _, inv = voxel_centroids(points - origin, float(voxel_m))
+    count = np.bincount(inv).astype(np.float64)
+    return np.stack([np.bincount(inv, points[:, i]) for i in range(3)], axis=1) / count[:, None]
 
 
 def dbscan_labels(points: np.ndarray, eps_m: float, min_points: int) -> np.ndarray:
