@@ -693,3 +693,19 @@ def test_voxel_downsample_is_open3ds_grid_and_centroids_bit_for_bit() -> None:
         assert got.shape == want.shape
         np.testing.assert_array_equal(got[np.lexsort(got.T)], want[np.lexsort(want.T)])
     assert voxel_downsample(np.zeros((0, 3)), 0.005).shape == (0, 3)
+
+
+def test_in_open_space_only_where_the_depth_sees_past_a_point() -> None:
+    from tracking.geometry import in_open_space
+
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    depth = np.ones((480, 640))  # a wall 1 m in front of a camera at the origin looking along +z
+    depth[:, 600:] = 0.0  # no reading there
+    pts = np.array([
+        [0.0, 0.0, 0.5],  # in front of the wall: the camera would see it
+        [0.0, 0.0, 0.99],  # on the wall, within the margin
+        [0.0, 0.0, 1.5],  # behind it: out of sight
+        [0.59, 0.0, 0.5],  # no reading at its pixel: not known to be open
+        [5.0, 0.0, 0.5],  # outside the image
+    ])
+    assert in_open_space(pts, depth, K, np.eye(4), margin_m=0.02).tolist() == [True, False, False, False, False]

@@ -323,3 +323,39 @@ def test_a_cloths_hidden_part_keeps_its_edge_lengths(sweeps: int) -> None:
         assert edge_rmse_mm(X, topo.edges, topo.rest) < edge_rmse_mm(ref, topo.edges, topo.rest)
     else:
         assert err > 2.0
+
+
+def test_a_hidden_cloth_keypoint_is_never_relaxed_into_open_space() -> None:
+    """The relaxation after the solve leaves a hidden keypoint where the solve put it when its relaxed place is
+    where the camera sees through (``open_space``: something there would be seen); the others keep theirs."""
+    from dataclasses import replace
+
+    from tracking.init import cloth_topology
+    from tracking.tracker import track_frame
+
+    R = C = 6
+    a, b = np.meshgrid(np.linspace(0.0, 0.25, C), np.linspace(0.0, 0.25, R))
+    X0 = np.stack([a, b, np.zeros_like(a)], axis=-1).reshape(-1, 3)
+    topo = cloth_topology(X0, R, C)
+    u, v = np.meshgrid(np.linspace(0.0, 0.15, 61), np.linspace(0.0, 0.25, 101))
+    seen = np.stack([u.ravel(), v.ravel(), np.zeros(u.size)], axis=1)
+    hidden = X0[:, 0] > 0.16
+    soft = (np.array([R * C - 1]), np.array([[0.17, 0.25, 0.0]]), np.array([0.2]))
+    args = (X0, topo, seen, np.zeros((0, 3)), np.zeros(0, np.int64), P, X0[[C - 1]], np.array([C - 1]))
+    solved, _ = track_frame(*args[:5], replace(P, hidden_relax_sweeps=0), *args[6:], hidden=hidden, soft=soft)
+    relaxed, _ = track_frame(*args, hidden=hidden, soft=soft)
+
+    step = np.linalg.norm(relaxed - solved, axis=1)
+    # the camera sees through the place the relaxation gives keypoint k (a ball no solved keypoint is in)
+    clear = np.linalg.norm(relaxed[:, None] - solved[None], axis=2).min(axis=1)
+    k = int(np.argmax(np.where(hidden, np.minimum(step, clear), 0.0)))
+
+    def open_space(pts: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(pts - relaxed[k], axis=1) < 0.5 * clear[k]
+
+    X, _ = track_frame(*args, hidden=hidden, soft=soft, open_space=open_space)
+    into = hidden & open_space(relaxed)
+    assert clear[k] > 0.002 and into[k] and (hidden & ~into).any()
+    assert not open_space(solved[hidden]).any()
+    np.testing.assert_array_equal(X[into], solved[into])
+    np.testing.assert_array_equal(X[~into], relaxed[~into])

@@ -121,6 +121,19 @@ def hidden_behind(
     return out
 
 
+def in_open_space(
+    points: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, margin_m: float
+) -> np.ndarray:
+    """(N,) bool: which points (N, 3) m world lie in the open space the camera sees through (depth (h, w) m, 0 = no
+    reading; K (3, 3) at T_world_cam (4, 4)): their pixel shows a surface more than margin_m behind them. Something
+    there would be seen in front of that surface, so a keypoint out of sight cannot be there."""
+    r, c, inside, z = pixels_of(np.asarray(points, np.float64).reshape(-1, 3), K, T_world_cam, depth.shape)
+    out = np.zeros(len(r), bool)
+    d = depth[r[inside], c[inside]]
+    out[inside] = (d > 0) & (z[inside] < d - margin_m)
+    return out
+
+
 def occluder_within(
     depth: np.ndarray, r: np.ndarray, c: np.ndarray, z: np.ndarray, K: np.ndarray, reach_m: float, margin_m: float
 ) -> np.ndarray:

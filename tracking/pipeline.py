@@ -13,13 +13,21 @@ from __future__ import annotations
 import time
 from collections import deque
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from tdcommon.meshes import OutwardCache
 from tracking.classify import classify_object
-from tracking.geometry import decimated_intrinsics, decimation_stride, edge_samples, gaps_hidden, hidden_behind
+from tracking.geometry import (
+    decimated_intrinsics,
+    decimation_stride,
+    edge_samples,
+    gaps_hidden,
+    hidden_behind,
+    in_open_space,
+)
 from tracking.init import InitialisationError, Topology
 from tracking.params import TrackingParams
 from tracking.segmentation import (
@@ -498,7 +506,12 @@ class LivePipeline:
         else:
             mask = arm if arm is not None else np.zeros(depth.shape, bool)  # what is out of the image only
             hidden = hidden_behind(X, mask, depth, self.K_seg, self.T, self.params.arm_margin_m)
-        res = self.tracker.step(seg.points, tcp=tcp, gripper_closed=closed, hidden=hidden, tcp_rot=tcp_rot)
+        open_space = None
+        if topo.kind == "2d":  # where a hidden cloth keypoint, which the camera would see there, cannot be moved
+            open_space = partial(in_open_space, depth=depth, K=self.K_seg, T_world_cam=self.T,
+                                 margin_m=self.params.arm_margin_m)
+        res = self.tracker.step(seg.points, tcp=tcp, gripper_closed=closed, hidden=hidden, tcp_rot=tcp_rot,
+                                open_space=open_space)
         self._timings.update(self.tracker.last_timings_ms)
         p = self.params
         n = (p.background_confirm_2d if topo.kind == "2d" else p.background_confirm_1d) - 1

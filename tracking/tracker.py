@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from enum import Enum
 
@@ -168,6 +169,7 @@ def track_frame(
     X_pred: np.ndarray | None = None,
     hidden: np.ndarray | None = None,
     soft: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    open_space: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, int]:
     """One step of Algorithm 2: match anchors, add grasped TCP anchors, solve warm-started from X_prev.
 
@@ -181,6 +183,8 @@ def track_frame(
     hidden: (N,) bool keypoints out of sight (``solve_keypoints``; ``Tracker.step``).
     soft: more anchors, (K,) int64 keypoints, (K, 3) m positions, (K,) weights in (0, 1), in place of any
     re-detected anchor of those keypoints (``Tracker.step``: where a held end or corner leaves the fingers).
+    open_space: points (K, 3) m -> (K,) bool, where the frame's depth sees through (``geometry.in_open_space``); a
+    cloth's hidden keypoint that the relaxation after the solve would put there stays where the solve put it.
     Returns (X (N, 3) float64 m, number of matched anchors).
     """
     ai = topology.anchor_idx
@@ -231,8 +235,12 @@ def track_frame(
     if topology.kind == "2d" and hidden is not None and params.use_edge_projection:
         movable = np.array(hidden, bool)
         movable[aidx[weight >= 1.0]] = False  # a held corner stays at its TCP
-        X = relax_hidden(X, topology.edges, topology.rest, movable, params.hidden_relax_sweeps, params,
-                         topology.colours)
+        relaxed = relax_hidden(X, topology.edges, topology.rest, movable, params.hidden_relax_sweeps, params,
+                               topology.colours)
+        if open_space is not None and movable.any():
+            stay = movable & open_space(relaxed)
+            relaxed[stay] = X[stay]
+        X = relaxed
     return X, int((m >= 0).sum())
 
 
@@ -363,6 +371,7 @@ class Tracker:
     def step(
         self, cloud: np.ndarray, tcp: np.ndarray | None = None, gripper_closed: np.ndarray | None = None,
         hidden: np.ndarray | None = None, tcp_rot: np.ndarray | None = None,
+        open_space: Callable[[np.ndarray], np.ndarray] | None = None,
     ) -> FrameResult:
         """Track one frame's segmented cloud (M, 3) m; tcp (G, 3) m and gripper_closed (G,) bool are optional,
         as are the grippers' orientations tcp_rot (G, 3, 3) (TCP frame to world).
@@ -374,7 +383,8 @@ class Tracker:
         (a 1D object's, ``params.hidden_bend``) and are left out of the CD that judges the frame, as held
         keypoints are (the robot places those). With tcp_rot, a hidden keypoint within ``params.exit_keypoints``
         (a cloth's: ``exit_keypoints_2d``) edges of a held one is also drawn towards where it was last seen in that
-        gripper's frame (``params.exit_stiffness``).
+        gripper's frame (``params.exit_stiffness``). open_space: the frame's test of where the camera sees through
+        (``track_frame``), which a hidden keypoint is never moved into after the solve.
 
         Grasp indices follow the grippers (regrasp on closing). After ``lost_after_frames`` bad frames
         the status is LOST and the tracker resets: the caller must initialise again.
@@ -409,7 +419,8 @@ class Tracker:
         if soft is not None:
             warm = warm.copy()
             warm[soft[0]] = soft[1]
-        X, matched = track_frame(warm, self.topology, cloud, det, kinds, p, tcp, self.grasp_idx, pred, hidden, soft)
+        X, matched = track_frame(warm, self.topology, cloud, det, kinds, p, tcp, self.grasp_idx, pred, hidden, soft,
+                                 open_space)
         tangled, repaired = 0, False
         if self.topology.grid_shape is not None:
             X, matched, tangled, repaired = self._untangle(X, matched, cloud, det, kinds, tcp, held)
