@@ -38,8 +38,8 @@ some sequences exact keypoints miss the CD / F<10 targets.
 
 The default set (``--set all``) is the five-sequence development set plus the variants below (camera
 from the side and from above, rope lengths 0.8-1.0 m, radii 4-7 mm, colours, the three speeds, other
-seeds; 73 sequences); generating it the first time takes 80-200 min and ~11 GB (1-3.5 min a sequence on this
-2-core machine), tracking and scoring it ~11 min here.
+seeds; 97 sequences); generating it the first time takes 2-5 hours and ~15 GB (1-3.5 min a sequence, one at a
+time, on this 2-core machine), tracking and scoring it ~16 min here.
 """
 
 from __future__ import annotations
@@ -349,7 +349,7 @@ def track(seq: Path, job: dict[str, Any], out: Path, cores: int | None = None,
                        preexec_fn=pin if mask else None)
     wall, cpu = time.monotonic() - t0, _children_cpu_s() - cpu0
     if r.returncode != 0:
-        return {"error": (r.stderr.strip().splitlines() or ["track failed"])[-1]}
+        return {"error": (r.stderr.strip().splitlines() or ["track failed"])[-1].removeprefix("error: ")}
     m = json.loads(r.stdout.strip().splitlines()[-1])
     frames = max(1, int(m.get("frames", 1)))
     m["wall_ms_per_frame"] = 1e3 * wall / frames
@@ -473,6 +473,26 @@ def missed(obj: str, r: dict[str, Any], radius_mm: float | None) -> list[str]:
     return out
 
 
+def miss_lines(jobs: list[dict[str, Any]], rows: dict[str, dict[str, Any]], seqs: Path) -> list[str]:
+    """One line per job whose row misses a target (``missed``; a rope's coverage limit from its ``gt.npz`` in
+    ``seqs``); a row without figures (never initialised, generation failed) misses every target and says why."""
+    out = []
+    for j in jobs:
+        r = rows.get(j["name"], {})
+        if "error" in r or not r:
+            out.append(f"  {j['name']}: {r.get('error') or 'no result'}")
+            continue
+        gt = seqs / j["name"] / "gt.npz"
+        radius = None
+        if j["obj"] != "cloth" and gt.is_file():
+            with np.load(gt) as g:
+                radius = 1000.0 * float(g["radius_m"])
+        m = missed(j["obj"], r, radius)
+        if m:
+            out.append(f"  {j['name']}: " + ", ".join(m))
+    return out
+
+
 def table(rows: list[tuple[str, dict[str, Any]]], truth: bool = False) -> str:
     """Markdown table of the scored sequences (with truth: the ground truth's own CD and F<10 too)."""
     columns = COLUMNS + TRUTH_COLUMNS if truth else COLUMNS
@@ -550,20 +570,8 @@ def main(argv: list[str] | None = None) -> int:
     if a.ablations:
         rows += means(rows, list(variants))
     print(table(rows, truth=a.truth))
-    misses = []
-    for j in [] if a.ablations else jobs:  # an ablation run's rows are per variant
-        r = dict(rows).get(j["name"], {})
-        if "error" in r or not r:
-            continue
-        gt = seqs / j["name"] / "gt.npz"
-        radius = None
-        if j["obj"] != "cloth" and gt.is_file():
-            with np.load(gt) as g:
-                radius = 1000.0 * float(g["radius_m"])
-        m = missed(j["obj"], r, radius)
-        if m:
-            misses.append(f"  {j['name']}: " + ", ".join(m))
-    if not a.ablations:
+    if not a.ablations:  # an ablation run's rows are per variant
+        misses = miss_lines(jobs, dict(rows), seqs)
         print(f"\nrows missing a target (issue 10): {len(misses)} of {len(jobs)}" + (":" if misses else ""))
         print("\n".join(misses))
     if a.json:

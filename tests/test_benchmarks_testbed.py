@@ -43,3 +43,14 @@ def test_missed_targets_name_the_column_and_whether_exact_keypoints_miss_them_to
     bad = {**ok, "CD_mm": 8.0, "F<10_pct": 60.0, "truth_CD_mm": 7.0, "truth_F<10_pct": 99.0, "nan_frame_fraction": 0.1}
     assert missed("bdlo", bad, radius_mm=5.0) == ["missing 10.00 (<= 0)", "CD 8.00 (<= 5) (truth too)",
                                                   "F<10 60.00 (>= 95)"]
+
+
+def test_a_row_without_figures_misses_every_target_and_says_why(tmp_path: Path) -> None:
+    from benchmarks.testbed import miss_lines
+
+    ok = {"nan_frame_fraction": 0.0, "gt_object_rmse_mm": 1.0, "anchor_err_mm": 3.0, "coverage_mm": 5.0,
+          "Abs_mm": 1.0, "E<5_pct": 100.0, "CD_mm": 2.0, "F<10_pct": 100.0}
+    jobs = [{"name": "a", "obj": "cloth"}, {"name": "b", "obj": "cloth"}, {"name": "c", "obj": "rope"},
+            {"name": "d", "obj": "cloth"}]
+    rows = {"a": ok, "b": {"error": "never initialised"}, "d": {**ok, "Abs_mm": 4.0}}
+    assert miss_lines(jobs, rows, tmp_path) == ["  b: never initialised", "  c: no result", "  d: Abs 4.00 (<= 3)"]
