@@ -7,6 +7,8 @@ scoring are those of the full method. Neither uses anchors, edge lengths or the 
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -91,10 +93,11 @@ class BaselineTracker(Tracker):
         self.cpd = {"beta_m": cpd_beta_m, "lam": cpd_lambda, "w": cpd_w}
 
     def step(self, cloud: np.ndarray, tcp: np.ndarray | None = None, gripper_closed: np.ndarray | None = None,
-             hidden: np.ndarray | None = None, tcp_rot: np.ndarray | None = None) -> FrameResult:
+             hidden: np.ndarray | None = None, tcp_rot: np.ndarray | None = None,
+             open_space: Callable[[np.ndarray], np.ndarray] | None = None) -> FrameResult:
         """One frame's segmented cloud (M, 3) m -> the baseline's keypoints, scored like the full method (the
-        keypoints hidden behind the arm, hidden (N,) bool, and the grippers' orientations tcp_rot (G, 3, 3) are
-        the full method's concern: a baseline reads neither)."""
+        keypoints hidden behind the arm, hidden (N,) bool, the grippers' orientations tcp_rot (G, 3, 3) and the
+        frame's open-space test are the full method's concern: a baseline reads none of them)."""
         early = self._begin_step(cloud, tcp, gripper_closed)
         if early is not None:
             return early
