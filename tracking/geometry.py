@@ -113,7 +113,7 @@ def hidden_behind(
     d = depth[ri, ci]
     if mask is None:
         out[inside] = (d <= 0) | (z[inside] > d + margin_m)
-        free = np.flatnonzero(inside)[(d > 0) & (z[inside] < d - margin_m)]
+        free = np.flatnonzero(in_open_space(points, depth, K, T_world_cam, margin_m))
         if reach_m > 0 and len(free):
             out[free] = occluder_within(depth, r[free], c[free], z[free], K, reach_m, margin_m)
     else:
