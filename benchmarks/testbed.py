@@ -18,8 +18,9 @@ its own scorer; see its README. This script
 
 Columns: missing = frames with a missing keypoint (%); object / anchors / coverage / Abs / CD in mm,
 E<5 and F<10 in % of all frames (the scorer's definitions); ms/frame = the tracker's median per-frame
-time (``tracking_metrics.json``), fill ms/frame = the same for the frames tracked backwards (or
-forwards after a loss) from a tracked neighbour, wall ms/frame = the whole ``track`` command's wall time per
+time over the frames its forward pass tracked (``tracking_metrics.json``; not the frames before initialisation,
+which only wait for motion), fill ms/frame = the same for the frames tracked backwards (or forwards after a loss)
+from a tracked neighbour, wall ms/frame = the whole ``track`` command's wall time per
 frame (start-up, reading the clip, both passes, writing: what a lab waits for), cpu ms/frame = the CPU time
 (user + system, all its threads) the command used per frame, which a busy shared machine inflates less than
 the wall time. ``--cores N`` runs each ``track`` command on N cores of this process's affinity mask (1: the
@@ -281,7 +282,7 @@ COLUMNS = [  # (header, scorer key or None, scale, format)
     ("E<5 %", "E<5_pct", 1.0, "{:.1f}"),
     ("CD mm", "CD_mm", 1.0, "{:.2f}"),
     ("F<10 %", "F<10_pct", 1.0, "{:.1f}"),
-    ("ms/frame", "ms_per_frame_median", 1.0, "{:.1f}"),
+    ("ms/frame", "tracked_ms_per_frame_median", 1.0, "{:.1f}"),
     ("fill ms/frame", "fill_ms_per_frame_median", 1.0, "{:.1f}"),
     ("wall ms/frame", "wall_ms_per_frame", 1.0, "{:.0f}"),
     ("cpu ms/frame", "cpu_ms_per_frame", 1.0, "{:.0f}"),

@@ -305,6 +305,9 @@ def track_sequence(
     metrics: dict[str, Any] = {"frames": T, "tracked_frames": len(abs_mm)}
     metrics.update(sequence_summary(np.array(abs_mm), np.array(cd_mm)))
     metrics["ms_per_frame_median"] = float(np.median(ms))
+    tracked_ms = [t for t, st in zip(ms, statuses, strict=True) if st in ("tracking", "degraded", "lost")]
+    if tracked_ms:  # the frames the forward pass tracked (not waiting for motion, nor initialising)
+        metrics["tracked_ms_per_frame_median"] = float(np.median(tracked_ms))
     metrics["backward_frames"], metrics["forward_filled_frames"] = filled.backward, filled.forward
     if filled.ms:
         metrics["fill_ms_per_frame_median"] = float(np.median(filled.ms))

@@ -115,6 +115,10 @@ def test_offline_track_writes_reference_npz(demo_10s_track: tuple[Path, dict]) -
     assert metrics["tracked_frames"] > 200 and metrics["CD"] < 10.0 and metrics["gt_rmse_mm"] < 5.0
     # a rope's chain folds are reported as a grid's tangles are: frames left folded, frames repaired
     assert isinstance(metrics["tangled_frames"], int) and 0 <= metrics["repaired_frames"] <= metrics["tracked_frames"]
+    # the speed figure is the tracked frames' (not those waiting for motion); the frames before initialisation
+    # (the reference frame and those waiting) are tracked backwards, each timed too
+    assert metrics["backward_frames"] == metrics["statuses"]["waiting"] + 1
+    assert metrics["tracked_ms_per_frame_median"] > 0 and metrics["fill_ms_per_frame_median"] > 0
     ref = np.load(out / "3d_keypoints.npz")
     assert ref["full"].shape == (300, 20, 3) and ref["edge_connection"].shape == (19, 2)
     assert 5.0 < np.nanmedian(ref["reference_lengths"]) < 60.0  # millimetres
