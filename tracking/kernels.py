@@ -423,11 +423,11 @@ def _argsort_keys(key: np.ndarray) -> np.ndarray:
 
 
 @_jit
-def voxel_centroids(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Points (N, 3) m, N > 0, grouped by voxel floor(p / voxel_m): (centroids (M, 3) m in the voxels' (x, y, z)
-    order (``_cells``), the voxel of each point (N,) int64). Each centroid sums its points in their order, as
-    np.bincount would."""
-    order, cell_key, start, _, _, _ = _cells(points, voxel_m)
+def voxel_centroids(points: np.ndarray, voxel_m: float, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Points (N, 3) m, N > 0, grouped by voxel floor((p - origin) / voxel_m), origin (3,) m: (centroids (M, 3) m
+    of the points themselves in the voxels' (x, y, z) order (``_cells``), the voxel of each point (N,) int64).
+    Each centroid sums its points in their order, as np.bincount would."""
+    order, cell_key, start, _, _, _ = _cells(points - origin, voxel_m)
     m = cell_key.shape[0]
     inv = np.empty(points.shape[0], np.int64)
     for g in range(m):
@@ -637,7 +637,7 @@ def warm_up() -> None:
         np.array([-1, 0]), np.array([0.0, 0.02]),
     )
     dbscan(X, 0.015, 2)
-    voxel_centroids(X, 0.009)
+    voxel_centroids(X, 0.009, np.zeros(3))
     near_any(X, X + 0.001, 0.01)
     nearest(X, X + 0.001)
     lift_median(X, X + 0.001, X, 1.0, 2)

@@ -254,16 +254,13 @@ def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """points: (N, 3) float64, m -> (M, 3) float64 voxel centroids, m, in the voxels' (x, y, z) order.
 
     open3d's ``voxel_down_sample`` grid (voxels floor((p - min + voxel_m / 2) / voxel_m)) and centroids (each
-    voxel's points summed in their order), bit for bit, on ``tracking.kernels.voxel_centroids``' grouping:
-    importing open3d is ~1 s of a ``trackdeform track`` command's start-up.
+    voxel's points summed in their order), bit for bit (``tracking.kernels.voxel_centroids``): importing open3d
+    is ~1 s of a ``trackdeform track`` command's start-up.
     """
     if len(points) == 0:
         return np.zeros((0, 3))
     points = np.ascontiguousarray(points, np.float64)
-    origin = points.min(axis=0) - 0.5 * voxel_m
-    _, inv = voxel_centroids(points - origin, float(voxel_m))
-    count = np.bincount(inv).astype(np.float64)
-    return np.stack([np.bincount(inv, points[:, i]) for i in range(3)], axis=1) / count[:, None]
+    return voxel_centroids(points, float(voxel_m), points.min(axis=0) - 0.5 * voxel_m)[0]
 
 
 def dbscan_labels(points: np.ndarray, eps_m: float, min_points: int) -> np.ndarray:
@@ -283,7 +280,7 @@ def voxel_groups(points: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.nda
     (``tracking.kernels.voxel_centroids``)."""
     if len(points) == 0:
         return np.zeros((0, 3)), np.zeros(0, np.int64)
-    return voxel_centroids(np.ascontiguousarray(points, np.float64), float(voxel_m))
+    return voxel_centroids(np.ascontiguousarray(points, np.float64), float(voxel_m), np.zeros(3))
 
 
 def coarse_dbscan_labels(points: np.ndarray, params: TrackingParams) -> np.ndarray:
