@@ -39,8 +39,8 @@ some sequences exact keypoints miss the CD / F<10 targets.
 
 The default set (``--set all``) is the five-sequence development set plus the variants below (camera
 from the side and from above, rope lengths 0.8-1.0 m, radii 4-7 mm, colours, the three speeds, other
-seeds; 110 sequences); generating it the first time takes 2-5 hours and ~15 GB (1-3.5 min a sequence, one at a
-time, on this 2-core machine), tracking and scoring it ~16 min here.
+seeds; 110 sequences); generating it the first time takes ~2 h with two generators at once, 2-5 hours one at a
+time (1-3.5 min a sequence on this 2-core machine), and ~15 GB; tracking and scoring it ~16 min here.
 """
 
 from __future__ import annotations
