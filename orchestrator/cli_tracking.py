@@ -214,15 +214,25 @@ def _renumbering(topology: Any, new: Any, X: np.ndarray, last: np.ndarray, span_
     return best
 
 
+# A clip never initialised is tracked again from this fraction of its largest moving part (``track_sequence``):
+# below 1 so the stability test (no growth over ``init_stable_frames``) can pass near that part's frame.
+INIT_RETRY_FRACTION = 0.8
+
+
 def track_sequence(
-    seq: Any, params: Any, kind: str | None, progress: bool = True, on_frame: Callable[[int], None] | None = None
+    seq: Any, params: Any, kind: str | None, progress: bool = True, on_frame: Callable[[int], None] | None = None,
+    min_init_points: int | None = None,
 ) -> dict[str, Any]:
     """Run the pipeline over every frame, then fill the frames left without keypoints (before initialisation,
     after a loss) by tracking from their tracked neighbour (``tracking.offline.fill_missing``); returns raw
     keypoints (T, N, 3) m (NaN only where no frame was ever tracked), grasp indices (T entries (G,) int64
     or None), topology, metrics. The frames without keypoints are kept in memory for the second pass as the
     forward pass prepared them (decimated uint16 depth and bit-packed arm mask, ~120 kB each at 1280x720
-    whatever the clip's length), with their TCPs. on_frame(i) is called after the forward pass's frame i."""
+    whatever the clip's length), with their TCPs. on_frame(i) is called after the forward pass's frame i.
+    A clip whose moving part never reached the pipeline's ``min_init_points`` (an object mostly hidden, or
+    only one end of it moving) is tracked again with that threshold lowered to ``INIT_RETRY_FRACTION`` of the
+    largest difference segmentation seen, so it initialises near the frame that showed the most of it
+    (metrics ``init_retry_min_points``; min_init_points: that threshold, None for the pipeline's default)."""
     from orchestrator.worker import ArmModel
     from tdrecord.sequence import iter_depth
     from tracking.metrics import sequence_summary, surface_error_mm
@@ -231,7 +241,10 @@ def track_sequence(
 
     arms = ArmModel(seq.T_world_base) if seq.T_world_base is not None else None
     pipe = LivePipeline(params, seq.K, seq.T_world_cam, kind)
+    if min_init_points is not None:
+        pipe.min_init_points = min_init_points
     T = len(seq)
+    largest = 0  # the largest difference segmentation while waiting, voxels
     raw: list[np.ndarray | None] = []
     grasp: list[np.ndarray | None] = []
     pending: dict[int, _Pending] = {}  # the frames without keypoints, for the second pass
@@ -257,6 +270,8 @@ def track_sequence(
         stages.append({**out.timings_ms, "total": ms[-1]} if t_arm is None else
                       {**out.timings_ms, "arm": (t_arm - t0) * 1e3, "total": ms[-1]})
         statuses.append(out.status)
+        if out.status == "waiting":
+            largest = max(largest, out.n_points)
         tangles[0] += out.tangled > 0
         tangles[1] += out.repaired and not out.tangled
         if len(out.keypoints) and topology is None:
@@ -288,6 +303,14 @@ def track_sequence(
     if progress:
         print(f"\r{T} frames in {time.monotonic() - t_start:.1f} s" + " " * 30, file=sys.stderr)
     if topology is None:
+        retry = max(params.min_object_points, int(INIT_RETRY_FRACTION * largest))
+        if min_init_points is None and retry < pipe.min_init_points:
+            if progress:
+                print(f"never initialised (the largest moving part: {largest} voxels < {pipe.min_init_points}); "
+                      f"tracking again, initialising from {retry} voxels", file=sys.stderr)
+            result = track_sequence(seq, params, kind, progress, on_frame, min_init_points=retry)
+            result["metrics"]["init_retry_min_points"] = retry
+            return result
         raise RuntimeError(
             f"the object was never initialised in {T} frames (last note: {pipe.last_init_error or 'no motion seen'})"
         )

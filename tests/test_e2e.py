@@ -124,6 +124,33 @@ def test_offline_track_writes_reference_npz(demo_10s_track: tuple[Path, dict]) -
     assert 5.0 < np.nanmedian(ref["reference_lengths"]) < 60.0  # millimetres
 
 
+def test_a_clip_whose_motion_never_reaches_the_threshold_is_tracked_again(
+    demo_10s: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A forward pass that never initialises (here: a threshold no motion reaches) is run again from a fraction
+    of the largest moving part it saw: every frame gets keypoints on the object, and the metrics say so."""
+    import tracking.pipeline
+    from orchestrator.cli_tracking import track_sequence
+    from orchestrator.worker import tracking_params
+    from tdcommon.objects import DIMENSION
+    from tdrecord import read_sequence
+
+    class Unreachable(tracking.pipeline.LivePipeline):
+        def __init__(self, *a: object, **kw: object) -> None:
+            super().__init__(*a, **kw)  # type: ignore[arg-type]
+            self.min_init_points = 10**9
+
+    monkeypatch.setattr(tracking.pipeline, "LivePipeline", Unreachable)
+    seq = read_sequence(demo_10s)
+    params = tracking_params(load_config(DEFAULT_CONFIG).tracking, "dlo", seq.metadata.get("n_keypoints"))
+    result = track_sequence(seq, params, DIMENSION["dlo"], progress=False)
+    m = result["metrics"]
+    assert params.min_object_points <= m["init_retry_min_points"] < 10**9
+    assert not np.isnan(result["raw"]).any() and result["raw"].shape[:2] == (300, 20)
+    assert m["backward_frames"] > 0 and m["gt_rmse_mm"] < 5.0, m  # initialised later, then filled backwards
+    # a never-initialised clip with no motion at all is still an error (test_retrack, test_final)
+
+
 def test_ctrl_c_stops_the_session_and_nothing_else_first(tmp_path: Path, port: int) -> None:
     """Ctrl-C in a terminal signals the whole process group: the session stops after its current frame and its
     children (tracking worker, the fake camera's render process) are stopped by it, not by the signal."""
