@@ -359,3 +359,42 @@ def test_a_hidden_cloth_keypoint_is_never_relaxed_into_open_space() -> None:
     assert not open_space(solved[hidden]).any()
     np.testing.assert_array_equal(X[into], solved[into])
     np.testing.assert_array_equal(X[~into], relaxed[~into])
+
+
+def test_a_tip_seen_short_pulls_its_keypoint_instead_of_fixing_it() -> None:
+    """A rope's end detected 1.2 cm inside the rope (end-on: its extreme point lies inside the object) is a soft
+    anchor: the tip keypoint does not jump there, and the rope is less compressed than with the tip fixed."""
+    from dataclasses import replace
+
+    from tracking.init import Topology
+    from tracking.skeleton import JUNCTION, LEAF
+    from tracking.solver import edge_colouring
+    from tracking.tracker import short_tips, track_frame
+
+    N = 11
+    edges = np.stack([np.arange(N - 1), np.arange(1, N)], axis=1)
+    topo = Topology("1d", edges, np.full(N - 1, 0.02), np.array([0, N - 1]), np.array([LEAF, LEAF]),
+                    [np.arange(N)], colours=edge_colouring(edges, N))
+    X0 = np.stack([0.02 * np.arange(N), np.zeros(N), np.zeros(N)], axis=1)
+    xs = np.linspace(0.0, 0.2, 400)
+    cloud = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)
+    det = np.array([[0.012, 0.0, 0.0], [0.2, 0.0, 0.0]])  # tip 0 seen 12 mm in: its edge would be 8 mm of 20
+    kinds = np.array([LEAF, LEAF])
+
+    assert short_tips(topo, np.array([0, N - 1]), det, kinds, X0, P).tolist() == [True, False]
+    assert not short_tips(topo, np.array([0, N - 1]), det, np.array([JUNCTION, LEAF]), X0, P).any()
+    far = det + np.array([[-0.006, 0.06, 0.0], [0.0, 0.0, 0.0]])  # beyond anchor_gate_m of the prediction
+    assert not short_tips(topo, np.array([0, N - 1]), far, kinds, X0, P).any()
+    fixed_params = replace(P, tip_short_tol=0.0)
+    assert not short_tips(topo, np.array([0, N - 1]), det, kinds, X0, fixed_params).any()
+
+    fixed, _ = track_frame(X0, topo, cloud, det, kinds, fixed_params)
+    soft, _ = track_frame(X0, topo, cloud, det, kinds, P)
+    assert np.allclose(fixed[0], det[0])  # the paper's hard tip: at the detection
+    assert np.linalg.norm(soft[0] - det[0]) > 0.002  # pulled part of the way only (to 8 mm of 12)
+    def length(X: np.ndarray) -> float:
+        return float(np.linalg.norm(np.diff(X, axis=0), axis=1).sum())
+
+    assert abs(soft[0, 0]) < abs(fixed[0, 0])  # nearer the true end (x = 0)
+    assert abs(length(soft) - 0.2) < abs(length(fixed) - 0.2)  # the rope less compressed
+    assert np.allclose(soft[N - 1], det[1])  # the tip seen at its full length stays fixed

@@ -98,7 +98,11 @@ class TrackingParams:
       anchor_stiffness: in (0, 1]: how far a re-detected junction (1D) or boundary anchor (cloth) pulls its
         keypoint after each solver iteration (1: fixed there, the paper's hard constraint): their detections
         carry the depth noise and contour error that a fixed anchor passes on to its edges. A 1D object's
-        tips and grasped keypoints are always fixed.
+        tips and grasped keypoints are fixed, except a tip seen short (``tip_short_tol``).
+      tip_short_tol: a re-detected 1D tip nearer its one neighbour's predicted position than its edge's rest
+        length by more than this fraction of it (the tip end-on, bent away or partly hidden, so the cloud's
+        extreme point lies inside the object) pulls its keypoint like a junction instead of fixing it, when
+        it is within anchor_gate_m of the tip's prediction (0: every tip fixed).
       relift_span_tol: a cloth grid folded over itself is re-lifted from the frame's contour only when the
         fresh grid's edges add up to the rest lengths within this fraction (the contour outlines the whole
         cloth and nothing else; measured: 0.95-1.03 on twisted test-bed cloths, 0.84-0.93 over a fold in the
@@ -213,6 +217,7 @@ class TrackingParams:
     anchor_edge_tol: float = 0.15
     anchor_neighbour_slack_m: float = 0.02
     anchor_stiffness: float = 0.2
+    tip_short_tol: float = 0.15
     relift_span_tol: float = 0.06
     fold_cos: float = -0.5
     fold_span_min: float = 0.8

@@ -157,6 +157,38 @@ def consistent_anchors(
     return ~condemned[idx]
 
 
+def short_tips(
+    topology: Topology, idx: np.ndarray, pos: np.ndarray, kinds: np.ndarray, X_pred: np.ndarray,
+    params: TrackingParams,
+) -> np.ndarray:
+    """Which re-detected 1D tips are seen short: nearer their one neighbour's prediction than the edge's rest
+    length allows by more than ``params.tip_short_tol`` of it, yet within ``anchor_gate_m`` of their own.
+
+    idx: (A,) int64 keypoints of matched anchors; pos: (A, 3) m their detections; kinds: (A,) anchor kinds;
+    X_pred: (N, 3) m predicted keypoints. Returns (A,) bool. Such a tip (end-on, bent away or partly hidden)
+    marks a point inside the object, so fixing its keypoint there would compress the tip's edge.
+    """
+    out = np.zeros(len(idx), bool)
+    if params.tip_short_tol <= 0 or not len(idx):
+        return out
+    e = np.asarray(topology.edges, np.int64)
+    degree = np.bincount(e.ravel(), minlength=len(X_pred))
+    tip = (kinds == LEAF) & (degree[idx] == 1)
+    if not tip.any():
+        return out
+    # the one edge of each tip: row of e holding it
+    row = np.full(len(X_pred), -1, np.int64)
+    row[e[:, 0]] = np.arange(len(e))
+    row[e[:, 1]] = np.arange(len(e))
+    r_edge = row[idx[tip]]
+    nb = np.where(e[r_edge, 0] == idx[tip], e[r_edge, 1], e[r_edge, 0])
+    rest = np.asarray(topology.rest, np.float64)[r_edge]
+    short = rest - np.linalg.norm(pos[tip] - X_pred[nb], axis=1) > params.tip_short_tol * rest
+    near = np.linalg.norm(pos[tip] - X_pred[idx[tip]], axis=1) <= params.anchor_gate_m
+    out[np.flatnonzero(tip)[short & near]] = True
+    return out
+
+
 def track_frame(
     X_prev: np.ndarray,
     topology: Topology,
@@ -211,6 +243,7 @@ def track_frame(
     weight = np.full(len(kinds), params.anchor_stiffness)
     if topology.kind == "1d":
         weight[kinds == LEAF] = 1.0
+        weight[short_tips(topology, idx[0], pos[0], kinds, Xm, params)] = params.anchor_stiffness
     if tcp is not None and grasp_idx is not None:
         g = np.asarray(grasp_idx, np.int64)
         held = g >= 0
