@@ -269,7 +269,8 @@ def initialise_1d(
     topo = Topology("1d", E, np.array(rest), anchor_idx, anchor_kind, chains, None, edge_colouring(E, len(Xa)))
     tree = cKDTree(cloud)
     Xs = solve_keypoints(
-        Xa, E, topo.rest, anchor_idx, Xa[anchor_idx], tree, params.init_iterations, params, topo.colours
+        Xa, E, topo.rest, anchor_idx, Xa[anchor_idx], tree, params.init_iterations, params, topo.colours,
+        symmetric_last=True,
     )
     Xs = snap_to_ridge(Xs, topo, anchor_idx, tree, T_world_cam, params)
     return Initialisation(Xs, topo, obj)

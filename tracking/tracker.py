@@ -264,6 +264,7 @@ def track_frame(
         X_prev, topology.edges, topology.rest, aidx, apos, cloud, params.track_iterations, params, topology.colours,
         weight, hidden,
         chain_neighbours(topology.chains, len(X_prev)) if hidden is not None and topology.kind == "1d" else None,
+        symmetric_last=topology.kind == "1d",
     )
     if topology.kind == "2d" and hidden is not None and params.use_edge_projection:
         movable = np.array(hidden, bool)
