@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from tracking import synthetic as S
+from tracking.init import Topology
 from tracking.metrics import anchor_error_mm, surface_error_mm
 from tracking.params import TrackingParams
 from tracking.segmentation import background_from_depths, render_arm_mask, segment_against_background
@@ -167,16 +168,20 @@ def test_without_anchors_the_grasped_keypoint_stays_at_the_tcp_and_detections_ar
     assert not np.allclose(r.keypoints[free_end], r_full.keypoints[free_end])
 
 
-def test_hidden_keypoints_move_with_the_hand_and_do_not_fail_the_frame() -> None:
-    from tracking.init import LEAF, Topology
+def _straight_rope(N: int = 11, spacing: float = 0.02) -> tuple[Topology, np.ndarray]:
+    """A rope of N keypoints along x from the origin, spacing m apart, both ends anchors: (Topology, X (N, 3) m)."""
+    from tracking.skeleton import LEAF
     from tracking.solver import edge_colouring
 
-    K, T = S.default_camera(W, H)
-    N = 11
     edges = np.stack([np.arange(N - 1), np.arange(1, N)], axis=1)
-    topo = Topology("1d", edges, np.full(N - 1, 0.02), np.array([0, N - 1]), np.array([LEAF, LEAF]),
+    topo = Topology("1d", edges, np.full(N - 1, spacing), np.array([0, N - 1]), np.array([LEAF, LEAF]),
                     [np.arange(N)], colours=edge_colouring(edges, N))
-    X0 = np.stack([0.02 * np.arange(N), np.zeros(N), np.zeros(N)], axis=1)
+    return topo, np.stack([spacing * np.arange(N), np.zeros(N), np.zeros(N)], axis=1)
+
+
+def test_hidden_keypoints_move_with_the_hand_and_do_not_fail_the_frame() -> None:
+    K, T = S.default_camera(W, H)
+    topo, X0 = _straight_rope()
     xs = np.linspace(0.1, 0.2, 300)
     cloud = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)  # the rope seen beyond the hand
     hidden = X0[:, 0] < 0.1  # keypoint 0 held at the TCP, 1-4 behind the hand
@@ -196,17 +201,13 @@ def test_hidden_keypoints_move_with_the_hand_and_do_not_fail_the_frame() -> None
 
 
 def test_hidden_keypoints_beside_a_held_end_leave_the_hand_the_way_they_were_seen() -> None:
-    from tracking.init import LEAF, Topology
-    from tracking.solver import edge_colouring, hop_neighbours
+    from tracking.solver import hop_neighbours
 
     K, T = S.default_camera(W, H)
-    N = 11
-    edges = np.stack([np.arange(N - 1), np.arange(1, N)], axis=1)
+    topo, X0 = _straight_rope()
+    N, edges = len(X0), topo.edges
     assert hop_neighbours(edges, N, 0, 2).tolist() == [1, 2]
     assert sorted(hop_neighbours(edges, N, 5, 1).tolist()) == [4, 6]
-    topo = Topology("1d", edges, np.full(N - 1, 0.02), np.array([0, N - 1]), np.array([LEAF, LEAF]),
-                    [np.arange(N)], colours=edge_colouring(edges, N))
-    X0 = np.stack([0.02 * np.arange(N), np.zeros(N), np.zeros(N)], axis=1)
     xs = np.linspace(0.0, 0.2, 600)
     seen = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)
     beyond = seen[xs >= 0.1]  # the hand hides the rope next to it
@@ -366,16 +367,11 @@ def test_a_tip_seen_short_pulls_its_keypoint_instead_of_fixing_it() -> None:
     anchor: the tip keypoint does not jump there, and the rope is less compressed than with the tip fixed."""
     from dataclasses import replace
 
-    from tracking.init import Topology
     from tracking.skeleton import JUNCTION, LEAF
-    from tracking.solver import edge_colouring
     from tracking.tracker import short_tips, track_frame
 
-    N = 11
-    edges = np.stack([np.arange(N - 1), np.arange(1, N)], axis=1)
-    topo = Topology("1d", edges, np.full(N - 1, 0.02), np.array([0, N - 1]), np.array([LEAF, LEAF]),
-                    [np.arange(N)], colours=edge_colouring(edges, N))
-    X0 = np.stack([0.02 * np.arange(N), np.zeros(N), np.zeros(N)], axis=1)
+    topo, X0 = _straight_rope()
+    N = len(X0)
     xs = np.linspace(0.0, 0.2, 400)
     cloud = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)
     det = np.array([[0.012, 0.0, 0.0], [0.2, 0.0, 0.0]])  # tip 0 seen 12 mm in: its edge would be 8 mm of 20
