@@ -454,13 +454,20 @@ def test_npz_member_stream_gives_zipfiles_bytes_and_checks_the_crc(
 ) -> None:
     monkeypatch.setattr(paper._Member, "_BLOCK", 1 << 10)  # many blocks, rows across their borders
     rng = np.random.default_rng(0)
-    arrays = {"depth": rng.integers(0, 900, (7, 33, 41)).astype(np.uint16), "color": rng.random((3, 5, 6))}
+    arrays = {"depth": rng.integers(0, 900, (7, 33, 41)).astype(np.uint16), "color": rng.random((3, 5, 6)),
+              "flat": np.zeros((40, 100), np.uint16)}  # one compressed block inflates to many
     path = tmp_path / "a.npz"
     (np.savez_compressed if compressed else np.savez)(path, **arrays)
     with zipfile.ZipFile(path) as zf:
         for name in zf.namelist():
             with zf.open(name) as ref, paper._open_member(zf, path, name) as ours:
                 assert ours.read(100) + ours.read(5000) + ours.read() == ref.read()
+            with paper._open_member(zf, path, name) as ours:
+                sizes = []
+                while ours._more():
+                    sizes.append(len(ours._chunk))
+                assert max(sizes) <= paper._Member._BLOCK and sum(sizes) == zf.getinfo(name).file_size
+    paper.verify_npz(path)
     rows = list(paper._iter_npz_rows(path, "depth", start=2))
     assert np.array_equal(np.stack(rows), arrays["depth"][2:])
     data = bytearray(path.read_bytes())
