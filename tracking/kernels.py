@@ -229,10 +229,10 @@ def solve_iterations(
     projection. Each iteration: a Gauss-Seidel sweep of the edges (with symmetric_last, the last iteration's is
     one in their order and one in reverse order from the same start, averaged: one order alone leaves the residual
     on the classes swept first, a rope's every other edge twice as far from its rest length); every keypoint to
-    the cloud (k <= 1: its
-    nearest point; else nearest point plus its offset restricted to the local extent of its k nearest points,
-    clamped to max_slide_m: keypoints slide below the cloud's point spacing); soft anchors soft_idx (S,) moved
-    the fraction soft_w (S,) of the way to soft_pos (S, 3); hard anchors hard_idx (H,) put on hard_pos (H, 3).
+    the cloud (k <= 1: its nearest point; else nearest point plus its offset restricted to the local extent of its
+    k nearest points, clamped to max_slide_m: keypoints slide below the cloud's point spacing); soft anchors
+    soft_idx (S,) moved the fraction soft_w (S,) of the way to soft_pos (S, 3); hard anchors hard_idx (H,) put on
+    hard_pos (H, 3).
     A keypoint flagged in hidden (N,) bool (out of sight) is projected only when its nearest point is within
     hidden_reach_m, and before each sweep moves the fraction bend_k of the way to where its chain runs smoothest:
     the least squared second difference over its neighbours bend (N, 4) int64, two and one back and one and two on
