@@ -271,7 +271,7 @@ VARIANTS: list[dict[str, Any]] = [
     # generated after e7b01b1, at camera poses no row above uses, and only scored
     dict(name="rope_medium_q221", obj="rope", speed="medium", seconds=5, seed=221,
          camera=[1.25, -0.05, 0.9, 0.45, -0.45, 0.2], length=0.88, radius=0.005, rgb=[0.9, 0.9, 0.9]),
-    dict(name="bdlo_fast_q222", obj="bdlo", speed="fast", seconds=5, seed=222,
+    dict(name="bdlo_fast_q225", obj="bdlo", speed="fast", seconds=5, seed=225,
          camera=[1.6, -0.75, 0.85, 0.5, -0.45, 0.2], branch_len=0.25, radius=0.005, rgb=[0.2, 0.3, 0.9]),
     dict(name="rope_slow_q223", obj="rope", speed="slow", seconds=5, seed=223,
          camera=[1.1, -0.6, 1.3, 0.5, -0.45, 0.15], length=1.0, radius=0.0045),
