@@ -224,7 +224,9 @@ def track_sequence(
     min_init_points: int | None = None,
 ) -> dict[str, Any]:
     """Run the pipeline over every frame, then fill the frames left without keypoints (before initialisation,
-    after a loss) by tracking from their tracked neighbour (``tracking.offline.fill_missing``); returns raw
+    after a loss) by tracking from their tracked neighbour (``tracking.offline.fill_missing``), and track a run
+    of frames left tangled again backwards from the good frame after it, each keeping the better solution
+    (``tracking.offline.retrack_tangled``; metrics ``retracked_frames``, ``retracked_kept``); returns raw
     keypoints (T, N, 3) m (NaN only where no frame was ever tracked), grasp indices (T entries (G,) int64
     or None), topology, metrics. The frames without keypoints are kept in memory for the second pass as the
     forward pass prepared them (decimated uint16 depth and bit-packed arm mask, ~120 kB each at 1280x720
@@ -236,7 +238,7 @@ def track_sequence(
     from orchestrator.worker import ArmModel
     from tdrecord.sequence import iter_depth
     from tracking.metrics import sequence_summary, surface_error_mm
-    from tracking.offline import FrameInput, fill_missing
+    from tracking.offline import FrameInput, fill_missing, retrack_tangled
     from tracking.pipeline import LivePipeline
 
     arms = ArmModel(seq.T_world_base) if seq.T_world_base is not None else None
@@ -247,7 +249,8 @@ def track_sequence(
     largest = 0  # the largest difference segmentation while waiting, voxels
     raw: list[np.ndarray | None] = []
     grasp: list[np.ndarray | None] = []
-    pending: dict[int, _Pending] = {}  # the frames without keypoints, for the second pass
+    pending: dict[int, _Pending] = {}  # the frames without keypoints or left tangled, for the second pass
+    tangled_at: dict[int, tuple[int, float]] = {}  # forward frames left tangled: (tangled, Abs mm)
     statuses: list[str] = []
     tangles = [0, 0]  # forward-pass frames left with a tangled grid / folded chain, frames repaired
     abs_mm, cd_mm, gt_mm, ms = [], [], [], []
@@ -287,8 +290,10 @@ def track_sequence(
             last = kp
         raw.append(kp if same else None)
         grasp.append(g if same else None)
-        if not same:
+        if not same or out.tangled:  # tracked (again) in the second pass; a tangled frame keeps the better
             pending[i] = _Pending.keep(out.prepared, frame.depth, frame.depth_scale, pipe.stride, tcp, closed, rot)
+        if same and out.tangled:
+            tangled_at[i] = (int(out.tangled), float(out.abs_mm))
         if same and out.status != "lost":
             abs_mm.append(out.abs_mm)
             cd_mm.append(out.cd_mm)
@@ -320,8 +325,15 @@ def track_sequence(
         return FrameInput(None, tcp=p.tcp, closed=p.closed, prepared=p.prepared(), tcp_rot=p.tcp_rot)
 
     assert pipe.background is not None  # set at initialisation
-    filled = fill_missing(raw, grasp, topology, pipe.background,
-                          lambda: LivePipeline(params, seq.K, seq.T_world_cam, kind), frame_input)
+    retracked = {i: pending.pop(i) for i in tangled_at}  # the second pass's, after the missing frames
+
+    def make_pipeline() -> LivePipeline:
+        return LivePipeline(params, seq.K, seq.T_world_cam, kind)
+
+    filled = fill_missing(raw, grasp, topology, pipe.background, make_pipeline, frame_input)
+    pending.update(retracked)
+    second, again, kept = retrack_tangled(raw, grasp, tangled_at, [i for i, q in filled.quality.items() if q[0]],
+                                          topology, pipe.background, make_pipeline, frame_input)
     pending.clear()
     N = topology.n_keypoints
     full = np.stack([r if r is not None else np.full((N, 3), np.nan) for r in raw])
@@ -332,9 +344,11 @@ def track_sequence(
     if tracked_ms:  # the frames the forward pass tracked (not waiting for motion, nor initialising)
         metrics["tracked_ms_per_frame_median"] = float(np.median(tracked_ms))
     metrics["backward_frames"], metrics["forward_filled_frames"] = filled.backward, filled.forward
-    if filled.ms:
-        metrics["fill_ms_per_frame_median"] = float(np.median(filled.ms))
-    metrics["stage_ms_median"] = {"forward": stage_medians(stages), "fill": stage_medians(filled.stages)}
+    metrics["retracked_frames"], metrics["retracked_kept"] = again, kept  # tangled, tracked backwards again
+    if filled.ms or second.ms:
+        metrics["fill_ms_per_frame_median"] = float(np.median(filled.ms + second.ms))
+    metrics["stage_ms_median"] = {"forward": stage_medians(stages),
+                                  "fill": stage_medians(filled.stages + second.stages)}
     metrics["statuses"] = {s: statuses.count(s) for s in sorted(set(statuses))}
     metrics["tangled_frames"], metrics["repaired_frames"] = tangles  # a grid's tangles, a chain's folds
     if gt_mm:
@@ -348,7 +362,7 @@ def cmd_track(args: argparse.Namespace) -> int:
     from orchestrator.worker import tracking_params
     from tdcommon.objects import DIMENSION
     from tdrecord import DatasetError, read_sequence, verify_sequence_files, write_reference_npz
-    from tracking.tracker import smooth_symmetric
+    from tracking.tracker import final_keypoints
 
     try:
         verify_sequence_files(args.input, structure_only=True)  # a truncated npz is refused before reading it
@@ -386,10 +400,7 @@ def cmd_track(args: argparse.Namespace) -> int:
         print(f"error: {bad}", file=sys.stderr)
         return 2
     raw, topo = result["raw"], result["topology"]
-    final = raw.copy()
-    ok = ~np.isnan(raw).any(axis=(1, 2))
-    if ok.any():
-        final[ok] = smooth_symmetric(raw[ok], params.symmetric_window)
+    final = final_keypoints(raw, topo.rest, params)
     out = Path(args.out) if args.out else Path(args.input if Path(args.input).is_dir() else Path(args.input).parent)
     out.mkdir(parents=True, exist_ok=True)
     write_reference_npz(out / "3d_keypoints.npz", final, topo.edges, topo.rest)

@@ -74,17 +74,14 @@ def track_run(files: list[Path], tracking: Any) -> FinalKeypoints:  # noqa: ANN4
     from orchestrator.worker import tracking_params
     from tdcommon.objects import DIMENSION
     from tdrecord import read_episodes
-    from tracking.tracker import smooth_symmetric
+    from tracking.tracker import final_keypoints
 
     seq = read_episodes(list(files))
     category = str(seq.metadata.get("category") or "")
     params = tracking_params(tracking, category or None, seq.metadata.get("n_keypoints"))
     result = track_sequence(seq, params, DIMENSION.get(category), progress=False)
     raw, topo = result["raw"], result["topology"]
-    final = raw.copy()
-    ok = ~np.isnan(raw).any(axis=(1, 2))
-    if ok.any():
-        final[ok] = smooth_symmetric(raw[ok], params.symmetric_window)
+    final = final_keypoints(raw, topo.rest, params)
     grasp = np.full((len(raw), 2), -1, dtype=np.int64)
     for i, g in enumerate(result.get("grasp") or []):
         if g is not None and len(g):

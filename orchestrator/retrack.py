@@ -160,7 +160,7 @@ def track_run(task: RunTask, progress: Any = None) -> dict[str, Any]:
     from orchestrator.cli_tracking import track_sequence
     from tdcommon.objects import DIMENSION
     from tdrecord import read_episodes
-    from tracking.tracker import smooth_symmetric
+    from tracking.tracker import final_keypoints
 
     t0, c0 = time.monotonic(), time.process_time()
     seqs = [read_episodes(p) for p in task.episodes]
@@ -172,10 +172,7 @@ def track_run(task: RunTask, progress: Any = None) -> dict[str, Any]:
 
     result = track_sequence(seq, task.params, DIMENSION.get(task.category or ""), progress=False, on_frame=tick)
     raw, topo = result["raw"], result["topology"]
-    final = raw.copy()
-    ok = ~np.isnan(raw).any(axis=(1, 2))
-    if ok.any():
-        final[ok] = smooth_symmetric(raw[ok], task.params.symmetric_window)
+    final = final_keypoints(raw, topo.rest, task.params)
     grasp = np.full((len(raw), 2), -1, np.int64)
     for i, g in enumerate(result["grasp"]):
         if g is not None and len(g):

@@ -7,7 +7,7 @@ import pytest
 
 from tracking import synthetic as S
 from tracking.metrics import surface_error_mm
-from tracking.offline import FrameInput, fill_missing, gaps
+from tracking.offline import FrameInput, fill_missing, gaps, retrack_frames, switch_frame
 from tracking.params import TrackingParams
 from tracking.pipeline import LivePipeline
 from tracking.segmentation import background_from_depths, render_arm_mask, segment_against_background
@@ -20,6 +20,26 @@ P = TrackingParams()
 def test_gaps_are_the_runs_without_keypoints() -> None:
     assert gaps(np.array([False, False, True, True, False, True, False])) == [(0, 2), (4, 5), (6, 7)]
     assert gaps(np.ones(3, bool)) == [] and gaps(np.zeros(2, bool)) == [(0, 2)]
+
+
+def test_retrack_frames_are_tangled_runs_before_a_good_frame() -> None:
+    bad = np.array([0, 1, 1, 0, 1, 0, 1, 1], bool)
+    good = np.array([1, 0, 0, 1, 0, 0, 0, 0], bool)  # frame 5: tracked, but not a start (a filled tangle)
+    assert retrack_frames(bad, good).tolist() == [1, 2]  # 4 has no good frame after it, 6-7 end the clip
+    assert retrack_frames(np.zeros(3, bool), np.ones(3, bool)).tolist() == []
+
+
+def test_switch_frame_at_the_least_seam_and_only_when_better() -> None:
+    rng = np.random.default_rng(0)
+    fwd = rng.normal(size=(5, 4, 3))
+    bwd = fwd + np.array([0.3, 0.2, 0.0, 0.1, 0.4])[:, None, None]  # nearest at frame 2
+    tangled_f = np.array([[1, 9.0]] * 5)
+    assert switch_frame(fwd, bwd, tangled_f, np.array([[1, 12.0], [1, 12.0], [0, 3.0], [0, 2.0], [0, 2.0]])) == 2
+    # from the seam on, the backward frames must be no more tangled and no larger in edge error, summed
+    assert switch_frame(fwd, bwd, tangled_f, np.array([[0, 1.0]] * 2 + [[0, 20.0]] * 3)) == 5
+    assert switch_frame(fwd, bwd, tangled_f, np.array([[0, 3.0]] * 2 + [[np.inf, np.inf]] * 3)) == 5
+    assert switch_frame(fwd, bwd, tangled_f, tangled_f) == 5  # the same: keep the forward pass
+    assert switch_frame(fwd[:0], bwd[:0], tangled_f[:0], tangled_f[:0]) == 0
 
 
 def test_fill_missing_tracks_backwards_and_forwards_from_one_frame() -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -14,6 +16,7 @@ from tracking.tracker import (
     Tracker,
     TrackStatus,
     assign_grasp_indices,
+    final_keypoints,
     match_anchors,
     smooth_causal,
     smooth_symmetric,
@@ -115,6 +118,22 @@ def test_smoothing():
     bump = np.zeros((6, 1, 1))
     bump[2] = 6.0
     assert np.allclose(smooth_symmetric(bump, 5)[:, 0, 0], [0, 2, 1.2, 1.2, 0, 0])  # windows 1, 3, 5, 5, 3, 1
+    # with a gate, a steady motion of any speed is still kept exactly; a jump is not averaged across
+    fast = 10.0 * traj
+    assert np.allclose(smooth_symmetric(fast, 5, gate_m=0.1), fast)
+    jump = np.zeros((8, 2, 3))
+    jump[4:, 0] = 1.0  # keypoint 0 jumps between frames 3 and 4; keypoint 1 stays
+    out = smooth_symmetric(jump, 5, gate_m=0.25)
+    np.testing.assert_allclose(out[:, 0, 0], [0, 0, 0, 0, 1, 1, 1, 1])  # ungated: 0.2, 0.4, 0.6, 0.8 at 2-5
+    np.testing.assert_allclose(out[:, 1], 0.0)
+    np.testing.assert_allclose(smooth_symmetric(jump, 5)[2:6, 0, 0], [0.2, 0.4, 0.6, 0.8])
+    # a clip's final keypoints: frames never tracked stay NaN; the gate is params.smooth_gate median rest lengths
+    raw = np.concatenate([np.full((1, 2, 3), np.nan), jump])
+    final = final_keypoints(raw, np.array([0.1]), replace(P, symmetric_window=5, smooth_gate=2.0))
+    assert np.isnan(final[0]).all()
+    np.testing.assert_allclose(final[1:, 0, 0], [0, 0, 0, 0, 1, 1, 1, 1])  # the jump: 10 rest lengths
+    final = final_keypoints(raw, np.array([1.0]), replace(P, symmetric_window=5, smooth_gate=2.0))
+    np.testing.assert_allclose(final[3:7, 0, 0], [0.2, 0.4, 0.6, 0.8])  # one rest length: a motion
 
 
 def test_consistent_anchors_leave_a_torn_edge_free():

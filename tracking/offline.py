@@ -1,6 +1,8 @@
 """Offline passes over a recorded clip: frames the forward pass left without keypoints are tracked from a
 neighbouring tracked frame, backwards in time before it (the frames before initialisation, or before a
 re-initialisation) or forwards after the last one (a track lost for good), so every frame has keypoints.
+A run of frames the forward pass left tangled (a chain folded onto itself, a grid's flipped cells) is tracked
+again backwards from the good frame after it (``retrack_frames``), and each frame keeps the better of the two.
 
 The passes run the same ``LivePipeline`` tracking step as the forward pass (same segmentation, anchors and
 solver; the frames' decimated depth and arm masks can be handed over from the forward pass, which made them
@@ -42,12 +44,14 @@ class FrameInput:
 @dataclass
 class FillResult:
     """What ``fill_missing`` did: frames tracked backwards / forwards, each one's ``process`` time, ms, and its
-    stages' (``PipelineOutput.timings_ms``)."""
+    stages' (``PipelineOutput.timings_ms``); quality: each filled frame's (tangled, Abs mm) (``PipelineOutput``:
+    tangled cells or folded keypoints left, edge error), for comparing it with another solution of that frame."""
 
     backward: int = 0
     forward: int = 0
     ms: list[float] = field(default_factory=list)
     stages: list[dict[str, float]] = field(default_factory=list)
+    quality: dict[int, tuple[int, float]] = field(default_factory=dict)
 
 
 def gaps(have: np.ndarray) -> list[tuple[int, int]]:
@@ -55,6 +59,32 @@ def gaps(have: np.ndarray) -> list[tuple[int, int]]:
     h = np.concatenate([[True], np.asarray(have, bool), [True]])
     d = np.diff(h.astype(np.int8))
     return list(zip((np.flatnonzero(d == -1)).tolist(), (np.flatnonzero(d == 1)).tolist(), strict=True))
+
+
+def retrack_frames(bad: np.ndarray, good: np.ndarray) -> np.ndarray:
+    """The frames (K,) int64 worth tracking again backwards: the runs of bad (T,) bool frames (tracked, but left
+    tangled) followed by a good (T,) bool frame to start from. A run at the clip's end has none: tracked forwards
+    again it would only repeat the forward pass."""
+    bad, good = np.asarray(bad, bool), np.asarray(good, bool)
+    T = len(bad)
+    out = [np.arange(a, b) for a, b in gaps(~bad) if b < T and good[b]]
+    return np.concatenate(out) if out else np.zeros(0, np.int64)
+
+
+def switch_frame(forward: np.ndarray, backward: np.ndarray, q_forward: np.ndarray, q_backward: np.ndarray) -> int:
+    """Where a run of K frames tracked twice switches from its forward solution to its backward one: frames
+    before the returned index keep forward (K, N, 3) m, the others take backward (K, N, 3) m; K keeps forward
+    throughout. The switch is at the frame where both solutions lie nearest each other (the least seam), and is
+    made only when the backward frames from there on are, summed, no more tangled and no larger in edge error
+    than the forward ones, and better in one: q_forward, q_backward (K, 2) per frame (tangled, Abs mm), inf
+    where a pass gave no solution."""
+    K = len(forward)
+    if K == 0:
+        return 0
+    gap = np.linalg.norm(np.asarray(forward) - np.asarray(backward), axis=2).max(axis=1)  # (K,) m
+    s = int(np.argmin(np.where(np.isfinite(gap), gap, np.inf)))
+    f, b = np.asarray(q_forward, np.float64)[s:].sum(axis=0), np.asarray(q_backward, np.float64)[s:].sum(axis=0)
+    return s if (b <= f).all() and (b < f).any() else K
 
 
 def fill_missing(
@@ -95,6 +125,7 @@ def fill_missing(
             res.stages.append(out.timings_ms)
             if len(out.keypoints) == N:
                 X, g = out.keypoints, out.grasp_idx
+                res.quality[i] = (int(out.tangled), float(out.abs_mm))
             keypoints[i], grasp_idx[i] = X, g
             if b < T:
                 res.backward += 1
@@ -103,3 +134,41 @@ def fill_missing(
             if not pipe.tracker.initialised:  # lost: carry on from the last solution
                 pipe.resume(topology, X, g, pipe.background if pipe.background is not None else background)
     return res
+
+
+def retrack_tangled(
+    keypoints: list[np.ndarray | None],
+    grasp_idx: list[np.ndarray | None],
+    tangled: dict[int, tuple[int, float]],
+    untrusted: list[int],
+    topology: Topology,
+    background: np.ndarray,
+    make_pipeline: Callable[[], LivePipeline],
+    frame: Callable[[int], FrameInput],
+) -> tuple[FillResult, int, int]:
+    """Track the runs of frames the forward pass left tangled (tangled: frame -> (tangled, Abs mm)) again
+    backwards from the good frame after each (``retrack_frames``; not one of untrusted, e.g. a filled frame left
+    tangled too), and keep in each run the backward solution from its least seam on where it is better
+    (``switch_frame``). keypoints, grasp_idx: T entries, every frame tracked, updated in place; the rest as
+    ``fill_missing``. Returns (the backward pass's FillResult, frames tracked again, frames whose backward
+    solution was kept)."""
+    T = len(keypoints)
+    bad = np.isin(np.arange(T), list(tangled))
+    good = np.array([k is not None for k in keypoints]) & ~bad
+    good[list(untrusted)] = False
+    again = retrack_frames(bad, good)
+    forward = {int(i): (keypoints[i], grasp_idx[i]) for i in again}
+    for i in again:
+        keypoints[i] = grasp_idx[i] = None
+    res = fill_missing(keypoints, grasp_idx, topology, background, make_pipeline, frame)
+    kept = 0
+    for a, b in gaps(~np.isin(np.arange(T), again)):
+        run = range(a, b)
+        s = a + switch_frame(np.stack([np.asarray(forward[i][0]) for i in run]),
+                             np.stack([np.asarray(keypoints[i]) for i in run]),
+                             np.array([tangled[i] for i in run], np.float64),
+                             np.array([res.quality.get(i, (np.inf, np.inf)) for i in run], np.float64))
+        kept += b - s
+        for i in range(a, s):
+            keypoints[i], grasp_idx[i] = forward[i]
+    return res, len(again), kept

@@ -141,6 +141,8 @@ class TrackingParams:
         it stops within this of the TCP and the rest of the way is hidden behind the arm in the image (a hand,
         whose fingers and body span about this much around its TCP, hides the end it holds), m.
       causal_window, symmetric_window: moving-average windows, frames.
+      smooth_gate: the symmetric average leaves out a pair of frames whose midpoint is farther than this many
+        median rest lengths from the frame it smooths (a jump: ``tracker.smooth_symmetric``).
       min_object_points: fewer segmented points than this is a bad frame.
       max_edge_rmse_m, max_chamfer_m: a frame with Abs or CD above these is bad, m.
       max_jump_m: a frame whose median keypoint displacement from the previous frame exceeds this
@@ -232,6 +234,7 @@ class TrackingParams:
     hand_hidden_m: float = 0.12
     causal_window: int = 3
     symmetric_window: int = 5
+    smooth_gate: float = 2.0
     min_object_points: int = 30
     max_edge_rmse_m: float = 0.015
     max_chamfer_m: float = 0.015

@@ -303,16 +303,40 @@ def smooth_causal(traj: np.ndarray, window: int) -> np.ndarray:
     return (c[t + 1] - c[lo]) / (t + 1 - lo)[:, None, None]
 
 
-def smooth_symmetric(traj: np.ndarray, window: int) -> np.ndarray:
+def smooth_symmetric(traj: np.ndarray, window: int, gate_m: float = np.inf) -> np.ndarray:
     """Symmetric moving average of a trajectory (T, N, 3) with an odd window, frames. Near the ends the window
     shrinks on both sides (frame t averages t-h..t+h with h <= t and h <= T-1-t): a window cut on one side only
-    lags a moving object by up to half a window at the clip's first and last frames."""
+    lags a moving object by up to half a window at the clip's first and last frames. Frames t-k and t+k enter
+    frame t's average (each keypoint's own) only while their midpoint lies within gate_m (m) of it, as do all
+    nearer pairs: a steady motion of any speed is averaged, a jump (a correspondence lost and found again, a
+    re-initialisation) is not averaged across, which would put the keypoints where the object never was."""
+    traj = np.asarray(traj, np.float64)
     T = len(traj)
-    t = np.arange(T)
-    h = np.minimum(max(0, window // 2), np.minimum(t, T - 1 - t))
-    c = np.cumsum(np.concatenate([np.zeros((1,) + traj.shape[1:]), traj]), axis=0)
-    lo, hi = t - h, t + h + 1
-    return (c[hi] - c[lo]) / (hi - lo)[:, None, None]
+    acc = traj.copy()
+    n = np.ones(traj.shape[:2])
+    live = np.ones(traj.shape[:2], bool)
+    for k in range(1, max(0, window // 2) + 1):
+        pair = np.zeros_like(traj)
+        ok = np.zeros(traj.shape[:2], bool)
+        if T > 2 * k:
+            pair[k:T - k] = traj[: T - 2 * k] + traj[2 * k:]
+            ok[k:T - k] = np.linalg.norm(0.5 * pair[k:T - k] - traj[k:T - k], axis=-1) <= gate_m
+        live &= ok
+        acc += np.where(live[..., None], pair, 0.0)
+        n += 2 * live
+    return acc / n[..., None]
+
+
+def final_keypoints(raw: np.ndarray, rest: np.ndarray, params: TrackingParams) -> np.ndarray:
+    """A clip's final keypoints (T, N, 3) m from its raw track (T, N, 3) m (rows of NaN: frames never tracked,
+    kept so): the tracked frames smoothed by ``smooth_symmetric`` over ``params.symmetric_window`` frames, not
+    across a jump of more than ``params.smooth_gate`` median rest lengths (rest (E,) m)."""
+    final = np.array(raw, np.float64)
+    ok = ~np.isnan(final).any(axis=(1, 2))
+    if ok.any():
+        gate = params.smooth_gate * float(np.median(rest)) if len(rest) else np.inf
+        final[ok] = smooth_symmetric(final[ok], params.symmetric_window, gate)
+    return final
 
 
 class Tracker:
