@@ -413,3 +413,26 @@ def test_a_tip_seen_short_pulls_its_keypoint_instead_of_fixing_it() -> None:
     assert abs(soft[0, 0]) < abs(fixed[0, 0])  # nearer the true end (x = 0)
     assert abs(length(soft) - 0.2) < abs(length(fixed) - 0.2)  # the rope less compressed
     assert np.allclose(soft[N - 1], det[1])  # the tip seen at its full length stays fixed
+
+
+def test_a_free_tip_seen_beyond_its_chain_lengthens_the_chain() -> None:
+    """A rope measured 0.20 m long (held at keypoint 0) whose free end is seen 0.26 m from the held end frame after
+    frame (a part hanging end-on at initialisation) is lengthened to that after grow_frames frames; a rope seen
+    as long as it was measured keeps its rest lengths."""
+    from dataclasses import replace
+
+    K, T = S.default_camera(W, H)
+    xs = np.linspace(0.0, 0.26, 600)
+    long_cloud = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)
+    for cloud, params, grown in ((long_cloud, P, True), (long_cloud, replace(P, grow_frames=0), False),
+                                 (long_cloud[xs <= 0.2], P, False)):
+        topo, X0 = _straight_rope()
+        tr = Tracker(params, K, T)
+        tr.resume(topo, X0, np.array([0]))
+        for _ in range(P.grow_frames):
+            tr.step(cloud, tcp=X0[:1], gripper_closed=np.array([True]))
+        total = float(tr.topology.rest.sum())  # type: ignore[union-attr]
+        if grown:
+            assert total == pytest.approx(0.26, abs=0.01)
+        else:
+            assert total == pytest.approx(0.2)

@@ -99,6 +99,8 @@ class TrackingParams:
         keypoint after each solver iteration (1: fixed there, the paper's hard constraint): their detections
         carry the depth noise and contour error that a fixed anchor passes on to its edges. A 1D object's
         tips and grasped keypoints are fixed, except a tip seen short (``tip_short_tol``).
+      grow_frames: a free 1D tip re-detected beyond its chain's reach ((1 + anchor_edge_tol) of the chain's rest
+        length from its other node) in this many frames running lengthens the chain to that reach (0: never).
       tip_short_tol: a re-detected 1D tip nearer its one neighbour's predicted position than its edge's rest
         length by more than this fraction of it (the tip end-on, bent away or partly hidden, so the cloud's
         extreme point lies inside the object) pulls its keypoint like a junction instead of fixing it, when
@@ -220,6 +222,7 @@ class TrackingParams:
     anchor_neighbour_slack_m: float = 0.02
     anchor_stiffness: float = 0.2
     tip_short_tol: float = 0.15
+    grow_frames: int = 3
     relift_span_tol: float = 0.06
     fold_cos: float = -0.5
     fold_span_min: float = 0.8

@@ -374,6 +374,7 @@ class Tracker:
         # where each keypoint beside a held one was last seen in its gripper's frame, m:
         # (gripper, held keypoint, keypoint) -> (3,)
         self._exit: dict[tuple[int, int, int], np.ndarray] = {}
+        self._beyond: dict[int, int] = {}  # free 1D tip -> frames running it was re-detected beyond its chain
 
     def initialise(
         self,
@@ -488,9 +489,40 @@ class Tracker:
             for g, k, j in exits:  # learnt where seen
                 if hidden is None or not hidden[j]:
                     self._exit[g, k, j] = rot[g].T @ (X[j] - tcp_now[g])
+        if self.topology.kind == "1d" and p.grow_frames > 0:
+            self._grow(X, pred, det, kinds)
         res = self._result(X, cloud, matched, na, tangled=tangled, repaired=repaired, hidden=hidden)
         self.last_timings_ms = {"anchors": 1e3 * (t1 - t0), "solve": 1e3 * (time.perf_counter() - t1)}
         return res
+
+    def _grow(self, X: np.ndarray, pred: np.ndarray, det: np.ndarray, kinds: np.ndarray) -> None:
+        """Lengthen a 1D chain whose free tip (not held) was re-detected farther from the chain's other node (in
+        X (N, 3) m, this frame's solution) than (1 + ``anchor_edge_tol``) of the chain's rest length in
+        ``grow_frames`` frames running: the chain's rest lengths are scaled (in place, the track's topology) to
+        that distance. Initialisation measures what it sees; a branch hanging end-on to the camera, or lying
+        partly hidden, is longer. The tips are matched as ``track_frame`` matches them (pred (N, 3) m,
+        detections det (D, 3) m of kinds (D,))."""
+        topo = self.topology
+        assert topo is not None
+        p = self.params
+        ai = topo.anchor_idx
+        m = match_anchors(pred[ai], topo.anchor_kind, det, kinds, p.anchor_gate_m, True, p.anchor_regate_m)
+        held = set(self.grasp_idx[self.grasp_idx >= 0].tolist())
+        row = {tuple(sorted(e)): i for i, e in enumerate(np.asarray(topo.edges).tolist())}
+        for ch in topo.chains:
+            ch = np.asarray(ch, np.int64)
+            e = np.array([row[tuple(sorted(q))] for q in zip(ch[:-1].tolist(), ch[1:].tolist(), strict=True)],
+                         np.int64)
+            for tip, node in ((int(ch[0]), int(ch[-1])), (int(ch[-1]), int(ch[0]))):
+                a = np.flatnonzero(ai == tip)
+                if len(ch) < 2 or not len(a) or topo.anchor_kind[a[0]] != LEAF or tip in held:
+                    continue
+                R = float(topo.rest[e].sum())
+                reach = float(np.linalg.norm(det[m[a[0]]] - X[node])) if m[a[0]] >= 0 else 0.0
+                self._beyond[tip] = self._beyond.get(tip, 0) + 1 if reach > (1.0 + p.anchor_edge_tol) * R else 0
+                if self._beyond[tip] >= p.grow_frames:
+                    topo.rest[e] *= reach / R
+                    self._beyond[tip] = 0
 
     def _exits(
         self, hidden: np.ndarray | None, tcp: np.ndarray | None, rot: np.ndarray | None
