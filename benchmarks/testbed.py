@@ -277,6 +277,15 @@ VARIANTS: list[dict[str, Any]] = [
          camera=[1.1, -0.6, 1.3, 0.5, -0.45, 0.15], length=1.0, radius=0.0045),
     dict(name="cloth_medium_q224", obj="cloth", speed="medium", seconds=5, seed=224,
          camera=[1.35, -0.15, 1.1, 0.5, -0.45, 0.2], rgb=[0.85, 0.85, 0.3]),
+    # generated after 0ea060e, only scored (camera poses no other row uses)
+    dict(name="rope_fast_r231", obj="rope", speed="fast", seconds=5, seed=231,
+         camera=[1.45, -0.3, 0.75, 0.45, -0.45, 0.15], length=0.85, radius=0.006, rgb=[0.2, 0.7, 0.3]),
+    dict(name="bdlo_medium_r232", obj="bdlo", speed="medium", seconds=5, seed=232,
+         camera=[1.0, -0.85, 1.2, 0.45, -0.45, 0.15], branch_len=0.22, radius=0.0055, rgb=[0.9, 0.5, 0.1]),
+    dict(name="cloth_fast_r233", obj="cloth", speed="fast", seconds=5, seed=233,
+         camera=[1.5, -0.55, 0.95, 0.45, -0.45, 0.2]),
+    dict(name="bdlo_slow_r234", obj="bdlo", speed="slow", seconds=5, seed=234,
+         camera=[1.3, 0.1, 1.0, 0.5, -0.45, 0.15], radius=0.004),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}

@@ -2,7 +2,8 @@
 neighbouring tracked frame, backwards in time before it (the frames before initialisation, or before a
 re-initialisation) or forwards after the last one (a track lost for good), so every frame has keypoints.
 A run of frames the forward pass left tangled (a chain folded onto itself, a grid's flipped cells) is tracked
-again backwards from the good frame after it (``retrack_frames``), and each frame keeps the better of the two.
+again backwards from the good frame after it, and switches to that solution from where the two meet when it is
+better there (``retrack_tangled``).
 
 The passes run the same ``LivePipeline`` tracking step as the forward pass (same segmentation, anchors and
 solver; the frames' decimated depth and arm masks can be handed over from the forward pass, which made them
@@ -81,8 +82,8 @@ def switch_frame(forward: np.ndarray, backward: np.ndarray, q_forward: np.ndarra
     K = len(forward)
     if K == 0:
         return 0
-    gap = np.linalg.norm(np.asarray(forward) - np.asarray(backward), axis=2).max(axis=1)  # (K,) m
-    s = int(np.argmin(np.where(np.isfinite(gap), gap, np.inf)))
+    seam = np.linalg.norm(np.asarray(forward) - np.asarray(backward), axis=2).max(axis=1)  # (K,) m
+    s = int(np.argmin(np.where(np.isfinite(seam), seam, np.inf)))
     f, b = np.asarray(q_forward, np.float64)[s:].sum(axis=0), np.asarray(q_backward, np.float64)[s:].sum(axis=0)
     return s if (b <= f).all() and (b < f).any() else K
 
