@@ -146,3 +146,63 @@ def test_a_reinitialised_track_is_put_in_the_clips_numbering_or_refused() -> Non
     short = Topology("1d", E.copy(), np.full(n - 1, 0.03), np.array([0, n - 1]), np.zeros(2, np.int64), [np.arange(n)])
     assert _renumbering(topo, short, X[::-1], last, 0.06) is None  # 25 % shorter
     assert _renumbering(topo, short, X[::-1], last, 0.3) is not None
+
+
+class _ReplayPipeline:
+    """A stand-in for ``LivePipeline`` in the offline passes: frame i (its depth is the index) yields
+    ``answers[i]`` = (keypoints (N, 3), tangled, Abs mm), whatever it resumed from."""
+
+    def __init__(self, answers: dict[int, tuple[np.ndarray, int, float]]) -> None:
+        from types import SimpleNamespace
+
+        self.answers = answers
+        self.tracker = SimpleNamespace(initialised=True)
+        self.background = np.zeros((2, 2), np.float32)
+        self.resumed_from: list[np.ndarray] = []
+
+    def resume(self, topology: object, keypoints: np.ndarray, grasp_idx: np.ndarray, background: np.ndarray) -> None:
+        self.resumed_from.append(np.array(keypoints))
+
+    def process(self, depth: np.ndarray, *args: object, **kwargs: object) -> object:
+        from types import SimpleNamespace
+
+        X, tangled, abs_mm = self.answers[int(depth)]
+        return SimpleNamespace(keypoints=X, grasp_idx=np.zeros(0, np.int64), tangled=tangled, abs_mm=abs_mm,
+                               timings_ms={})
+
+
+def test_retrack_tangled_keeps_the_backward_run_from_its_least_seam() -> None:
+    from types import SimpleNamespace
+
+    from tracking.offline import retrack_tangled
+
+    T, N = 9, 3
+    truth = np.arange(T, dtype=float)[:, None, None] * np.ones((T, N, 3)) * 0.01
+    fwd: list[np.ndarray | None] = [truth[i].copy() for i in range(T)]
+    for i in (3, 4, 5):  # tangled forward frames: 3 near the truth, 4 and 5 far off
+        fwd[i] = truth[i] + (0.001 if i == 3 else 0.2)
+    fwd[8] = truth[8] + 0.2  # tangled at the clip's end: nothing to track back from
+    tangled = {3: (1, 9.0), 4: (1, 30.0), 5: (1, 30.0), 8: (1, 30.0)}
+    answers = {i: (truth[i] + 0.0005, 0, 1.0) for i in range(T)}
+    pipe = _ReplayPipeline(answers)
+    keypoints = list(fwd)
+    grasp: list[np.ndarray | None] = [np.zeros(0, np.int64)] * T
+    topo = SimpleNamespace(n_keypoints=N)
+    res, again, kept = retrack_tangled(keypoints, grasp, tangled, [], topo, pipe.background,  # type: ignore[arg-type]
+                                       lambda: pipe,  # type: ignore[arg-type, return-value]
+                                       lambda i: FrameInput(np.array(i)))
+    assert (again, kept, res.backward) == (3, 3, 3)  # frames 5, 4, 3 from frame 6; frame 8 left as it was
+    np.testing.assert_allclose(pipe.resumed_from[0], truth[6])
+    for i in (3, 4, 5):
+        np.testing.assert_allclose(keypoints[i], truth[i] + 0.0005)  # type: ignore[arg-type]
+    np.testing.assert_allclose(keypoints[8], fwd[8])  # type: ignore[arg-type]
+    # a backward pass that is no better (more edge error) leaves the forward frames
+    worse = {i: (truth[i] + 0.0005, 0, 50.0) for i in range(T)}
+    pipe = _ReplayPipeline(worse)
+    keypoints = list(fwd)
+    _, again, kept = retrack_tangled(keypoints, grasp, tangled, [], topo, pipe.background,  # type: ignore[arg-type]
+                                     lambda: pipe,  # type: ignore[arg-type, return-value]
+                                     lambda i: FrameInput(np.array(i)))
+    assert (again, kept) == (3, 0)
+    for i in (3, 4, 5):
+        np.testing.assert_allclose(keypoints[i], fwd[i])  # type: ignore[arg-type]
