@@ -115,6 +115,8 @@ def test_offline_track_writes_reference_npz(demo_10s_track: tuple[Path, dict]) -
     assert metrics["tracked_frames"] > 200 and metrics["CD"] < 10.0 and metrics["gt_rmse_mm"] < 5.0
     # a rope's chain folds are reported as a grid's tangles are: frames left folded, frames repaired
     assert isinstance(metrics["tangled_frames"], int) and 0 <= metrics["repaired_frames"] <= metrics["tracked_frames"]
+    # tangled runs followed by a good frame are tracked again backwards; at most all of them keep that solution
+    assert 0 <= metrics["retracked_kept"] <= metrics["retracked_frames"] <= metrics["tangled_frames"]
     # the speed figure is the tracked frames' (not those waiting for motion); the frames before initialisation
     # (the reference frame and those waiting) are tracked backwards, each timed too
     assert metrics["backward_frames"] == metrics["statuses"]["waiting"] + 1
