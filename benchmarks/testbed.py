@@ -286,6 +286,14 @@ VARIANTS: list[dict[str, Any]] = [
          camera=[1.5, -0.55, 0.95, 0.45, -0.45, 0.2]),
     dict(name="bdlo_slow_r234", obj="bdlo", speed="slow", seconds=5, seed=234,
          camera=[1.3, 0.1, 1.0, 0.5, -0.45, 0.15], radius=0.004),
+    dict(name="cloth_slow_t241", obj="cloth", speed="slow", seconds=5, seed=241,
+         camera=[1.15, 0.25, 1.05, 0.45, -0.45, 0.2], rgb=[0.3, 0.5, 0.8]),
+    dict(name="rope_medium_t242", obj="rope", speed="medium", seconds=5, seed=242,
+         camera=[1.5, -0.9, 0.8, 0.45, -0.4, 0.15], length=0.95, radius=0.0065, rgb=[0.75, 0.15, 0.15]),
+    dict(name="bdlo_fast_t243", obj="bdlo", speed="fast", seconds=5, seed=243,
+         camera=[1.4, -0.45, 1.3, 0.45, -0.45, 0.1], branch_len=0.28, radius=0.005),
+    dict(name="rope_slow_t244", obj="rope", speed="slow", seconds=5, seed=244,
+         camera=[0.9, -0.1, 1.25, 0.45, -0.45, 0.1], length=0.8, radius=0.004, rgb=[0.95, 0.6, 0.1]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
