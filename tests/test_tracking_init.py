@@ -282,3 +282,21 @@ def test_a_branch_held_across_a_hidden_gap_gets_that_gap_as_one_edge() -> None:
     np.testing.assert_allclose(Xr, X[::-1], atol=1e-12)
     np.testing.assert_allclose(rr, rest[::-1])
     np.testing.assert_allclose(space_branch(poly[:2], 3, (True, True))[1], np.full(4, 0.0025))  # no seen part
+
+
+def test_a_gap_longer_than_the_spacing_to_a_held_end_is_one_edge(scene, rope) -> None:
+    """A rope whose held end is 5 cm beyond its seen tip (the hand hides the rest): the gap, longer than the
+    keypoint spacing (~3 cm), is one edge of its own, so no keypoint is placed in it and pulled back onto the
+    seen rope (which stretched the held end's edge and squeezed the next)."""
+    K, T, _ = scene
+    c, pts = rope
+    out = (c[0] - c[1]) / np.linalg.norm(c[0] - c[1])
+    tcp = c[0] + 0.05 * out
+    ini = initialise(pts, K, T, P, held=tcp[None])
+    tp, X = ini.topology, ini.keypoints
+    L = np.linalg.norm(X[tp.edges[:, 0]] - X[tp.edges[:, 1]], axis=1)
+    assert np.abs(L - tp.rest).max() < 0.003  # m
+    held = int(np.argmin(np.linalg.norm(X - tcp, axis=1)))
+    assert np.linalg.norm(X[held] - tcp) < 1e-6
+    e = np.flatnonzero((tp.edges == held).any(axis=1))
+    assert len(e) == 1 and tp.rest[e[0]] == pytest.approx(0.05, abs=0.01)  # the chord from the seen tip

@@ -213,7 +213,9 @@ def initialise_1d(
     (the paper's FPS warm start gives seed-dependent per-branch counts and spacings, which
     Gauss-Seidel evens out only slowly along a chain: repeated initialisations then disagree);
     edges chain each branch node to node; rest length of a branch = its 3D arc length / its edge count (but a
-    gap the hand hides, one edge: ``space_branch``). Keypoint 0
+    gap the hand hides between a seen tip and the TCP that holds it, when longer than that spacing or than
+    ``grasp_gate_m``, is one edge: ``space_branch``; a keypoint placed in it would be pulled onto the seen rope).
+    Keypoint 0
     is the leaf at ``root_hint`` (3,) m or the image's leftmost (``root_leaf``); branches are
     numbered depth-first, leftmost (image) first at junctions. held: (H, 3) m TCPs of closed
     grippers: the ends they hold are placed there (``snap_held_leaves``; held_gate (H,) m: how far from each
@@ -229,7 +231,7 @@ def initialise_1d(
     if held is not None:
         gate = params.grasp_gate_m if held_gate is None else held_gate
         nodes, branches = snap_held_leaves(nodes, kinds, branches, held, gate)
-    far = np.linalg.norm(nodes - seen, axis=1) > params.grasp_gate_m  # held across a gap the hand hides
+    gap = np.linalg.norm(nodes - seen, axis=1)  # m: how far a held end was moved from its seen tip to its TCP
     Nn = len(nodes)
     n_free = max(0, params.n_keypoints_1d - Nn)
     polys = [p for _, _, p in branches]
@@ -251,6 +253,8 @@ def initialise_1d(
         start, end = (b, a) if rev else (a, b)
         chain = [int(node_kp[start])]
         poly = polys[k][::-1] if rev else polys[k]
+        # held across a gap the hand hides: a gap longer than the branch's spacing would put keypoints in it
+        far = gap > min(params.grasp_gate_m, lengths[k] / (int(counts[k]) + 1))
         free, d = space_branch(poly, int(counts[k]), (bool(far[start]), bool(far[end])))
         for x in free:
             X.append(x)
