@@ -225,8 +225,9 @@ def track_sequence(
 ) -> dict[str, Any]:
     """Run the pipeline over every frame, then fill the frames left without keypoints (before initialisation,
     after a loss) by tracking from their tracked neighbour (``tracking.offline.fill_missing``), and track a run
-    of frames left tangled again backwards from the good frame after it, each keeping the better solution
-    (``tracking.offline.retrack_tangled``; metrics ``retracked_frames``, ``retracked_kept``); returns raw
+    of frames left tangled again backwards from the good frame after it, switching to that solution from where
+    the two meet when it is better (``tracking.offline.retrack_tangled``; metrics ``retracked_frames``,
+    ``retracked_kept``); returns raw
     keypoints (T, N, 3) m (NaN only where no frame was ever tracked), grasp indices (T entries (G,) int64
     or None), topology, metrics. The frames without keypoints are kept in memory for the second pass as the
     forward pass prepared them (decimated uint16 depth and bit-packed arm mask, ~120 kB each at 1280x720
@@ -325,13 +326,11 @@ def track_sequence(
         return FrameInput(None, tcp=p.tcp, closed=p.closed, prepared=p.prepared(), tcp_rot=p.tcp_rot)
 
     assert pipe.background is not None  # set at initialisation
-    retracked = {i: pending.pop(i) for i in tangled_at}  # the second pass's, after the missing frames
 
     def make_pipeline() -> LivePipeline:
         return LivePipeline(params, seq.K, seq.T_world_cam, kind)
 
-    filled = fill_missing(raw, grasp, topology, pipe.background, make_pipeline, frame_input)
-    pending.update(retracked)
+    filled = fill_missing(raw, grasp, topology, pipe.background, make_pipeline, frame_input)  # asks missing frames
     second, again, kept = retrack_tangled(raw, grasp, tangled_at, [i for i, q in filled.quality.items() if q[0]],
                                           topology, pipe.background, make_pipeline, frame_input)
     pending.clear()

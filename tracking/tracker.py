@@ -511,11 +511,13 @@ class Tracker:
         row = {tuple(sorted(e)): i for i, e in enumerate(np.asarray(topo.edges).tolist())}
         for ch in topo.chains:
             ch = np.asarray(ch, np.int64)
+            if len(ch) < 2:
+                continue
             e = np.array([row[tuple(sorted(q))] for q in zip(ch[:-1].tolist(), ch[1:].tolist(), strict=True)],
                          np.int64)
             for tip, node in ((int(ch[0]), int(ch[-1])), (int(ch[-1]), int(ch[0]))):
                 a = np.flatnonzero(ai == tip)
-                if len(ch) < 2 or not len(a) or topo.anchor_kind[a[0]] != LEAF or tip in held:
+                if not len(a) or topo.anchor_kind[a[0]] != LEAF or tip in held:
                     continue
                 R = float(topo.rest[e].sum())
                 reach = float(np.linalg.norm(det[m[a[0]]] - X[node])) if m[a[0]] >= 0 else 0.0
