@@ -294,6 +294,25 @@ VARIANTS: list[dict[str, Any]] = [
          camera=[1.4, -0.45, 1.3, 0.45, -0.45, 0.1], branch_len=0.28, radius=0.005),
     dict(name="rope_slow_t244", obj="rope", speed="slow", seconds=5, seed=244,
          camera=[0.9, -0.1, 1.25, 0.45, -0.45, 0.1], length=0.8, radius=0.004, rgb=[0.95, 0.6, 0.1]),
+    # generated after 1e6bea3, at camera poses no other row uses, and scored before any change they prompted
+    dict(name="rope_medium_k251", obj="rope", speed="medium", seconds=5, seed=251,
+         camera=[1.2, -0.7, 1.4, 0.5, -0.45, 0.15], length=0.9, radius=0.005, rgb=[0.6, 0.1, 0.8]),
+    dict(name="bdlo_slow_k252", obj="bdlo", speed="slow", seconds=5, seed=252,
+         camera=[1.65, -0.2, 1.1, 0.45, -0.45, 0.15], branch_len=0.26, radius=0.006, rgb=[0.1, 0.7, 0.7]),
+    dict(name="cloth_fast_k253", obj="cloth", speed="fast", seconds=5, seed=253,
+         camera=[1.05, -0.3, 1.35, 0.45, -0.45, 0.15], rgb=[0.8, 0.3, 0.3]),
+    dict(name="rope_fast_k254", obj="rope", speed="fast", seconds=5, seed=254,
+         camera=[1.55, -1.0, 1.05, 0.45, -0.45, 0.15], length=0.85, radius=0.0065),
+    dict(name="bdlo_medium_k255", obj="bdlo", speed="medium", seconds=5, seed=255,
+         camera=[1.25, 0.3, 0.85, 0.45, -0.45, 0.2], branch_len=0.3, radius=0.0045, rgb=[0.9, 0.8, 0.2]),
+    dict(name="cloth_medium_k256", obj="cloth", speed="medium", seconds=5, seed=256,
+         camera=[1.6, -0.7, 1.25, 0.5, -0.45, 0.15], rgb=[0.5, 0.8, 0.9]),
+    dict(name="rope_slow_k257", obj="rope", speed="slow", seconds=5, seed=257,
+         camera=[0.95, -0.5, 1.4, 0.45, -0.45, 0.15], length=1.0, radius=0.0055, rgb=[0.2, 0.2, 0.9]),
+    dict(name="bdlo_fast_k258", obj="bdlo", speed="fast", seconds=5, seed=258,
+         camera=[1.45, -0.15, 0.7, 0.45, -0.45, 0.2], branch_len=0.24, radius=0.0055),
+    dict(name="cloth_slow_k259", obj="cloth", speed="slow", seconds=5, seed=259,
+         camera=[1.35, -1.1, 0.9, 0.45, -0.45, 0.2], rgb=[0.9, 0.9, 0.9]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
