@@ -107,6 +107,11 @@ def test_anchor_matching_gates_and_kinds():
     far = np.array([[0.1, 0, 0]])
     assert match_anchors(prev[:1], kinds[:1], far, np.array([0]), 0.05, True).tolist() == [-1]
     assert match_anchors(prev[:1], kinds[:1], far, np.array([0]), 0.05, True, regate_m=0.15).tolist() == [0]
+    # an anchor re-detected and kept last frame is not recaptured by a detection 10 cm off (a spur, the end of a
+    # part seen short); one that was not is
+    no, yes = np.array([False]), np.array([True])
+    assert match_anchors(prev[:1], kinds[:1], far, np.array([0]), 0.05, True, 0.15, no).tolist() == [-1]
+    assert match_anchors(prev[:1], kinds[:1], far, np.array([0]), 0.05, True, 0.15, yes).tolist() == [0]
 
 
 def test_smoothing():
@@ -217,6 +222,7 @@ def test_hidden_keypoints_move_with_the_hand_and_do_not_fail_the_frame() -> None
     assert np.allclose(X[0], X0[0] + lift[0])  # held at the TCP
     assert np.all(X[1:4, 2] > 0.008)  # the hidden keypoints followed the hand up (by the edges alone: < 3 mm)
     assert np.abs(X[6:, 2]).max() < 1e-6  # the seen ones stay on the cloud
+
 
 
 def test_hidden_keypoints_beside_a_held_end_leave_the_hand_the_way_they_were_seen() -> None:
@@ -436,3 +442,18 @@ def test_a_free_tip_seen_beyond_its_chain_lengthens_the_chain() -> None:
             assert total == pytest.approx(0.26, abs=0.01)
         else:
             assert total == pytest.approx(0.2)
+
+
+def test_track_frame_reports_the_anchors_it_kept() -> None:
+    """``used`` says which anchors were re-detected and kept (``Tracker.step`` lets only the others be recaptured
+    within the wider gate next frame): a tip detected where it is, yes; a tip with no detection, no."""
+    from tracking.skeleton import LEAF
+    from tracking.tracker import track_frame
+
+    topo, X0 = _straight_rope()
+    xs = np.linspace(0.0, 0.2, 400)
+    cloud = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)
+    used = np.zeros(len(topo.anchor_idx), bool)
+    track_frame(X0, topo, cloud, X0[[0]], np.array([LEAF]), P, used=used)
+    assert used.tolist() == (topo.anchor_idx == 0).tolist()
+    assert used.sum() == 1

@@ -75,12 +75,14 @@ def match_anchors(
     gate_m: float,
     by_kind: bool,
     regate_m: float = 0.0,
+    recapture: np.ndarray | None = None,
 ) -> np.ndarray:
     """Hungarian match of predicted anchors (A, 3) m to detections (D, 3) m -> (A,) index into det or -1.
 
     Pairs farther than gate_m (or of different kinds when ``by_kind``) are not matched; anchors and
     detections left over are then matched among themselves within the wider ``regate_m`` (an anchor
-    that drifted while it was not detected is recaptured).
+    that drifted while it was not detected is recaptured): those of recapture (A,) bool only, when given
+    (an anchor detected in the last frame is where it is predicted; a detection farther is something else).
     """
     out = np.full(len(prev), -1, np.int64)
     if len(prev) == 0 or len(det) == 0:
@@ -90,7 +92,7 @@ def match_anchors(
     r, c = _hungarian(C, kind_bad | (C > gate_m))
     out[r] = c
     if regate_m > gate_m:
-        ra = np.nonzero(out < 0)[0]
+        ra = np.nonzero((out < 0) if recapture is None else (out < 0) & np.asarray(recapture, bool))[0]
         cd = np.setdiff1d(np.arange(len(det)), c)
         if len(ra) and len(cd):
             sub = np.ix_(ra, cd)
@@ -202,6 +204,8 @@ def track_frame(
     hidden: np.ndarray | None = None,
     soft: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     open_space: Callable[[np.ndarray], np.ndarray] | None = None,
+    recapture: np.ndarray | None = None,
+    used: np.ndarray | None = None,
 ) -> tuple[np.ndarray, int]:
     """One step of Algorithm 2: match anchors, add grasped TCP anchors, solve warm-started from X_prev.
 
@@ -217,6 +221,8 @@ def track_frame(
     re-detected anchor of those keypoints (``Tracker.step``: where a held end or corner leaves the fingers).
     open_space: points (K, 3) m -> (K,) bool, where the frame's depth sees through (``geometry.in_open_space``); a
     cloth's hidden keypoint that the relaxation after the solve would put there stays where the solve put it.
+    recapture: (A,) bool the anchors that may be matched within ``anchor_regate_m`` (``match_anchors``).
+    used: (A,) bool, filled when given: which anchors were re-detected and kept (consistent) this frame.
     Returns (X (N, 3) float64 m, number of matched anchors).
     """
     ai = topology.anchor_idx
@@ -229,6 +235,7 @@ def track_frame(
         params.anchor_gate_m,
         topology.kind == "1d",
         params.anchor_regate_m,
+        recapture,
     )
     idx = [ai[m >= 0]]
     pos = [det_pos[m[m >= 0]]]
@@ -238,6 +245,8 @@ def track_frame(
             topology, idx[0], pos[0], len(X_prev), params.anchor_edge_tol, Xm, params.anchor_neighbour_slack_m
         )
         idx, pos, kinds = [idx[0][ok]], [pos[0][ok]], kinds[ok]
+    if used is not None:
+        used[:] = np.isin(ai, idx[0])
     # a 1D object's tips are sharp in the cloud and stay fixed; its junctions and a cloth's boundary, found
     # less sharply, pull their keypoints part of the way (anchor_stiffness)
     weight = np.full(len(kinds), params.anchor_stiffness)
@@ -375,6 +384,9 @@ class Tracker:
         # (gripper, held keypoint, keypoint) -> (3,)
         self._exit: dict[tuple[int, int, int], np.ndarray] = {}
         self._beyond: dict[int, int] = {}  # free 1D tip -> frames running it was re-detected beyond its chain
+        # (A,) bool: which anchors were re-detected and kept last frame (None: not known; all may be recaptured
+        # within the wider gate)
+        self._detected: np.ndarray | None = None
 
     def initialise(
         self,
@@ -478,35 +490,40 @@ class Tracker:
         if soft is not None:
             warm = warm.copy()
             warm[soft[0]] = soft[1]
+        recapture = None if self._detected is None else ~self._detected
+        used = np.zeros(na, bool)
         X, matched = track_frame(warm, self.topology, cloud, det, kinds, p, tcp, self.grasp_idx, pred, hidden, soft,
-                                 open_space)
+                                 open_space, recapture, used)
         tangled, repaired = 0, False
         if self.topology.grid_shape is not None:
             X, matched, tangled, repaired = self._untangle(X, matched, cloud, det, kinds, tcp, held)
         elif self.topology.kind == "1d":
-            X, matched, tangled, repaired = self._unfold(X, matched, cloud, det, kinds, tcp, hidden, soft)
+            X, matched, tangled, repaired = self._unfold(X, matched, cloud, det, kinds, tcp, hidden, soft, recapture)
         if rot is not None and tcp_now is not None:
             for g, k, j in exits:  # learnt where seen
                 if hidden is None or not hidden[j]:
                     self._exit[g, k, j] = rot[g].T @ (X[j] - tcp_now[g])
         if self.topology.kind == "1d" and p.grow_frames > 0:
-            self._grow(X, pred, det, kinds)
+            self._grow(X, pred, det, kinds, recapture)
+        self._detected = used
         res = self._result(X, cloud, matched, na, tangled=tangled, repaired=repaired, hidden=hidden)
         self.last_timings_ms = {"anchors": 1e3 * (t1 - t0), "solve": 1e3 * (time.perf_counter() - t1)}
         return res
 
-    def _grow(self, X: np.ndarray, pred: np.ndarray, det: np.ndarray, kinds: np.ndarray) -> None:
+    def _grow(
+        self, X: np.ndarray, pred: np.ndarray, det: np.ndarray, kinds: np.ndarray, recapture: np.ndarray | None
+    ) -> None:
         """Lengthen a 1D chain whose free tip (not held) was re-detected farther from the chain's other node (in
         X (N, 3) m, this frame's solution) than (1 + ``anchor_edge_tol``) of the chain's rest length in
         ``grow_frames`` frames running: the chain's rest lengths are scaled (in place, the track's topology) to
         that distance. Initialisation measures what it sees; a branch hanging end-on to the camera, or lying
         partly hidden, is longer. The tips are matched as ``track_frame`` matches them (pred (N, 3) m,
-        detections det (D, 3) m of kinds (D,))."""
+        detections det (D, 3) m of kinds (D,), recapture (A,) bool or None)."""
         topo = self.topology
         assert topo is not None
         p = self.params
         ai = topo.anchor_idx
-        m = match_anchors(pred[ai], topo.anchor_kind, det, kinds, p.anchor_gate_m, True, p.anchor_regate_m)
+        m = match_anchors(pred[ai], topo.anchor_kind, det, kinds, p.anchor_gate_m, True, p.anchor_regate_m, recapture)
         held = set(self.grasp_idx[self.grasp_idx >= 0].tolist())
         row = {tuple(sorted(e)): i for i, e in enumerate(np.asarray(topo.edges).tolist())}
         for ch in topo.chains:
@@ -579,7 +596,7 @@ class Tracker:
     def _unfold(
         self, X: np.ndarray, matched: int, cloud: np.ndarray, det: np.ndarray, kinds: np.ndarray,
         tcp: np.ndarray | None, hidden: np.ndarray | None = None,
-        soft: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+        soft: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, recapture: np.ndarray | None = None,
     ) -> tuple[np.ndarray, int, int, bool]:
         """A 1D solution X (N, 3) m checked for chains folded onto themselves; a folded one is solved again from
         its chains laid out without the fold (``unfold_chains``) and from chains laid along the frame's skeleton
@@ -604,7 +621,7 @@ class Tracker:
             if X0 is None:
                 continue
             X2, m2 = track_frame(X0, self.topology, cloud, det, kinds, self.params, tcp, self.grasp_idx, X0, hidden,
-                                 soft)
+                                 soft, recapture=recapture)
             bad2 = len(chain_reversals(X2, self.topology.chains, cos_max))
             abs2 = edge_rmse_mm(X2, edges, rest)
             if bad2 < best[2] and abs2 <= abs_best:
