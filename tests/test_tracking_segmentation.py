@@ -457,17 +457,17 @@ def test_initial_rope_cloud_is_grown_up_to_the_grippers_holding_it(cam):
     assert cKDTree(free.points).query(far)[0].min() > P.grasp_gate_m
 
 
-def test_an_end_the_hand_hides_beyond_the_grasp_gate_is_still_put_at_its_tcp() -> None:
-    """A rope whose seen end stops 10 cm short of a TCP (beyond ``grasp_gate_m``) is held there when the arm's
-    pixels cover the way from that end to the TCP; not when the way is in plain sight."""
+@pytest.mark.parametrize("gap", [0.10, 0.25])
+def test_an_end_the_hand_hides_beyond_the_grasp_gate_is_still_put_at_its_tcp(gap: float) -> None:
+    """A rope whose seen end stops 10 or 25 cm short of a TCP (beyond ``grasp_gate_m``) is held there when the
+    arm's pixels cover the way from that end to the TCP; not when the way is in plain sight."""
     from tracking.pipeline import LivePipeline
 
     K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
     T = np.eye(4)  # camera at the origin looking along +z
     x = np.linspace(-0.35, 0.0, 300)
     cloud = np.stack([x, 0.03 * np.sin(6.0 * x), np.ones_like(x)], axis=1)  # seen up to x = 0
-    tcp = np.array([[-0.35, 0.0, 1.0], [0.10, 0.0, 1.0]])  # the second 10 cm beyond the seen end
-    assert P.grasp_gate_m < 0.10 <= P.hand_hidden_m
+    tcp = np.array([[-0.35, 0.0, 1.0], [gap, 0.0, 1.0]])  # the second beyond the seen end
     pipe = LivePipeline(P, K, T, "1d")
     h, w = pipe.decimate(np.zeros((480, 640))).shape
     u = pipe.K_seg[0, 0] * 0.003 + pipe.K_seg[0, 2]  # a hand over x > 3 mm around the row of the rope
@@ -475,12 +475,12 @@ def test_an_end_the_hand_hides_beyond_the_grasp_gate_is_still_put_at_its_tcp() -
     hand = np.zeros((h, w), bool)
     hand[int(v0): int(v1) + 1, int(u):] = True
     gates = pipe.grasp_gates(cloud, hand, tcp)
-    np.testing.assert_allclose(gates, [P.grasp_gate_m, P.hand_hidden_m])
+    np.testing.assert_allclose(gates, [P.grasp_gate_m, gap + P.grasp_gate_m])
     np.testing.assert_allclose(pipe.grasp_gates(cloud, np.zeros_like(hand), tcp), P.grasp_gate_m)  # in sight
     ini, _ = pipe.tracker.initialise(cloud, tcp=tcp, kind="1d", grasp_gate=gates)
     assert (pipe.tracker.grasp_idx >= 0).all()
     np.testing.assert_allclose(ini.keypoints[pipe.tracker.grasp_idx], tcp, atol=1e-9)
-    assert ini.topology.rest.sum() > 0.44  # the rest lengths span the hidden 10 cm
+    assert ini.topology.rest.sum() > 0.34 + gap  # the rest lengths span the hidden gap
     pipe.tracker.initialise(cloud, tcp=tcp, kind="1d")  # the default gate: that end is left free
     assert pipe.tracker.grasp_idx[1] < 0
 

@@ -225,6 +225,26 @@ def test_hidden_keypoints_move_with_the_hand_and_do_not_fail_the_frame() -> None
 
 
 
+def test_a_rope_gone_from_sight_is_carried_by_the_hands() -> None:
+    """A frame with too little cloud to track (the rope behind an arm) moves the keypoints with the hands that hold
+    it, as a bad frame: held ends at their TCPs, the rest with them, at its rest lengths (frozen, the ends would
+    be left behind the moving grippers for as long as the rope stays hidden)."""
+    K, T = S.default_camera(W, H)
+    topo, X0 = _straight_rope()
+    xs = np.linspace(0.0, 0.2, 300)
+    cloud = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)
+    ends = X0[[0, -1]]
+    tr = Tracker(P, K, T)
+    tr.resume(topo, X0, np.array([0, len(X0) - 1]))
+    assert tr.step(cloud, tcp=ends).status == TrackStatus.OK
+    move = np.array([0.0, 0.03, 0.01])
+    for k in range(1, 3):
+        res = tr.step(np.zeros((0, 3)), tcp=ends + k * move)
+        assert res.status == TrackStatus.DEGRADED
+        assert np.allclose(res.keypoints[[0, -1]], ends + k * move)
+        assert np.allclose(res.keypoints, X0 + k * move, atol=1e-6)
+    assert np.allclose(tr.keypoints, X0 + 2 * move, atol=1e-6)  # the next tracked frame starts there
+
 def test_hidden_keypoints_beside_a_held_end_leave_the_hand_the_way_they_were_seen() -> None:
     from tracking.solver import hop_neighbours
 

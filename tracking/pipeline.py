@@ -343,17 +343,17 @@ class LivePipeline:
 
     def grasp_gates(self, cloud: np.ndarray, arm: np.ndarray | None, tcp: np.ndarray | None) -> np.ndarray | None:
         """How far (G,) m from each TCP tcp (G, 3) m the end of a 1D object held there may be seen in the cloud
-        (N, 3) m: ``grasp_gate_m``, or ``hand_hidden_m`` where the cloud's nearest point lies within that and
-        the straight way from it to the TCP is hidden behind the arm (arm: decimated mask; ``gaps_hidden``),
-        as a hand seen across its fingers hides more of the rope it holds. None without TCPs, arm or cloud, or
-        for a cloth."""
+        (N, 3) m: ``grasp_gate_m``, or, where the straight way from the cloud's nearest point to the TCP is hidden
+        (behind the arm: decimated mask; or outside the image: ``gaps_hidden``), that point's distance plus
+        ``grasp_gate_m``: a hand seen across its fingers, or an arm in front of the rope it holds, hides the end
+        whatever the length hidden. None without TCPs, arm or cloud, or for a cloth."""
         if tcp is None or arm is None or len(cloud) == 0 or self.kind == "2d":
             return None
         p = self.seg_params
         tcp = np.asarray(tcp, np.float64).reshape(-1, 3)
         d, i = cKDTree(cloud).query(tcp)
-        far = (d > p.grasp_gate_m) & (d <= p.hand_hidden_m)
-        return np.where(self._hand_hides(cloud, tcp, arm, i, far), p.hand_hidden_m, p.grasp_gate_m)
+        far = d > p.grasp_gate_m
+        return np.where(self._hand_hides(cloud, tcp, arm, i, far), d + p.grasp_gate_m, p.grasp_gate_m)
 
     def _grow_free(
         self, depth: np.ndarray, seg: Segmentation, arm: np.ndarray | None, held: np.ndarray

@@ -645,8 +645,32 @@ class Tracker:
             self.grasp_idx = update_grasp_indices(self.grasp_idx, self.keypoints, tcp, gripper_closed, p.grasp_gate_m)
         self.last_timings_ms = {}
         if len(cloud) < p.min_object_points:
+            self._carry(tcp)
             return self._result(self.keypoints, cloud, 0, len(self.topology.anchor_idx), force_bad=True)
         return None
+
+    def _carry(self, tcp: np.ndarray | None) -> None:
+        """Move the keypoints with the hands through a frame with too little cloud to track (the object behind an
+        arm): each by its nearest gripper's motion since the last frame (TCPs tcp (G, 3) m), held ones to their
+        TCPs, the others then relaxed to their rest lengths (``relax_hidden``). No velocity is kept: the next
+        tracked frame starts from here."""
+        assert self.topology is not None and self.keypoints is not None
+        if tcp is None or self._tcp is None:
+            return
+        now = np.asarray(tcp, np.float64).reshape(-1, 3)
+        if now.shape != self._tcp.shape or not len(now):
+            return
+        X = self.keypoints
+        near = np.argmin(np.linalg.norm(X[:, None, :] - self._tcp[None, :, :], axis=2), axis=1)
+        X = X + (now - self._tcp)[near]
+        held = (self.grasp_idx >= 0) & (self.grasp_idx < len(X))
+        X[self.grasp_idx[held]] = now[: len(held)][held]
+        movable = np.ones(len(X), bool)
+        movable[self.grasp_idx[held]] = False
+        if held.any():
+            X = relax_hidden(X, self.topology.edges, self.topology.rest, movable, self.params.hidden_relax_sweeps,
+                             self.params, self.topology.colours)
+        self.keypoints, self._tcp, self._velocity = X, now, None
 
     def _result(
         self, X: np.ndarray, cloud: np.ndarray | cKDTree, matched: int, total: int, force_bad: bool = False,
