@@ -82,7 +82,8 @@ def match_anchors(
     Pairs farther than gate_m (or of different kinds when ``by_kind``) are not matched; anchors and
     detections left over are then matched among themselves within the wider ``regate_m`` (an anchor
     that drifted while it was not detected is recaptured): those of recapture (A,) bool only, when given
-    (an anchor detected in the last frame is where it is predicted; a detection farther is something else).
+    (an anchor re-detected and kept the frame before is where it is predicted; a detection farther is more
+    likely something else: a spur, the end of a part seen short).
     """
     out = np.full(len(prev), -1, np.int64)
     if len(prev) == 0 or len(det) == 0:
@@ -386,7 +387,7 @@ class Tracker:
         self._beyond: dict[int, int] = {}  # free 1D tip -> frames running it was re-detected beyond its chain
         # (A,) bool: which anchors were re-detected and kept last frame (None: not known; all may be recaptured
         # within the wider gate)
-        self._detected: np.ndarray | None = None
+        self._kept: np.ndarray | None = None
 
     def initialise(
         self,
@@ -490,7 +491,7 @@ class Tracker:
         if soft is not None:
             warm = warm.copy()
             warm[soft[0]] = soft[1]
-        recapture = None if self._detected is None else ~self._detected
+        recapture = None if self._kept is None else ~self._kept
         used = np.zeros(na, bool)
         X, matched = track_frame(warm, self.topology, cloud, det, kinds, p, tcp, self.grasp_idx, pred, hidden, soft,
                                  open_space, recapture, used)
@@ -505,7 +506,7 @@ class Tracker:
                     self._exit[g, k, j] = rot[g].T @ (X[j] - tcp_now[g])
         if self.topology.kind == "1d" and p.grow_frames > 0:
             self._grow(X, pred, det, kinds, recapture)
-        self._detected = used
+        self._kept = used
         res = self._result(X, cloud, matched, na, tangled=tangled, repaired=repaired, hidden=hidden)
         self.last_timings_ms = {"anchors": 1e3 * (t1 - t0), "solve": 1e3 * (time.perf_counter() - t1)}
         return res
