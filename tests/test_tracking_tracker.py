@@ -477,3 +477,19 @@ def test_track_frame_reports_the_anchors_it_kept() -> None:
     track_frame(X0, topo, cloud, X0[[0]], np.array([LEAF]), P, used=used)
     assert used.tolist() == (topo.anchor_idx == 0).tolist()
     assert used.sum() == 1
+
+
+def test_a_kept_tip_is_not_recaptured_by_a_detection_on_the_rope() -> None:
+    """A 1D tip kept the frame before is matched within the wider gate only by a detection off the rest of the rope
+    (a tip whipping ahead of its prediction), not by one lying on it (a spur of the skeleton, a part seen short)."""
+    from tracking.tracker import regate_on_object
+
+    topo, X0 = _straight_rope()  # 11 keypoints 2 cm apart along x, anchors 0 and 10
+    det = np.array([[0.10, 0.003, 0.0], [-0.08, 0.0, 0.0], [0.01, 0.0, 0.0]])
+    kept = np.array([True, False])
+    on_rope = regate_on_object(topo, X0, det, np.array([0, -1]), kept, P)  # 10 cm off, beside keypoint 5
+    beyond = regate_on_object(topo, X0, det, np.array([1, -1]), kept, P)  # 8 cm beyond the tip
+    near = regate_on_object(topo, X0, det, np.array([2, -1]), kept, P)  # within the gate: a plain match
+    assert on_rope.tolist() == [True, False]
+    assert not beyond.any() and not near.any()
+    assert not regate_on_object(topo, X0, det, np.array([0, -1]), ~kept, P).any()  # not kept: recaptured

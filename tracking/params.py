@@ -89,7 +89,12 @@ class TrackingParams:
         tube's visible skin, found from the cloud within this radius (0: off), m.
     Tracking (Algorithm 2)
       anchor_gate_m: Hungarian matches of re-detected to predicted anchors farther than this are rejected, m.
-      anchor_regate_m: leftover anchors and detections are matched again within this wider gate, m.
+      anchor_regate_m: leftover anchors and detections are matched again within this wider gate, m: a cloth's
+        anchor only if it was not re-detected and kept the frame before (``Tracker.step``); a 1D one kept the frame
+        before only by a detection off the rest of the object (``anchor_regate_clear``): a tip whipping in fast
+        motion outruns its constant-velocity prediction, a spur of the skeleton lies on the object.
+      anchor_regate_clear: that detection's least distance to the other predicted keypoints (not the anchor's
+        neighbours), in median rest lengths.
       anchor_edge_tol: two re-detected anchors joined by an edge whose length differs from its rest
         length by more than this fraction of it are both left free this frame (0: off).
       anchor_neighbour_slack_m: so is a re-detected anchor whose distance to the predicted position
@@ -218,6 +223,7 @@ class TrackingParams:
 
     anchor_gate_m: float = 0.05
     anchor_regate_m: float = 0.15
+    anchor_regate_clear: float = 0.5
     anchor_edge_tol: float = 0.15
     anchor_neighbour_slack_m: float = 0.02
     anchor_stiffness: float = 0.2

@@ -160,6 +160,32 @@ def consistent_anchors(
     return ~condemned[idx]
 
 
+def regate_on_object(
+    topology: Topology, X_pred: np.ndarray, det: np.ndarray, m: np.ndarray, ask: np.ndarray, params: TrackingParams,
+) -> np.ndarray:
+    """(A,) bool: which anchors picked by ask (A,) bool were matched (m (A,) into det (D, 3) m) beyond
+    ``anchor_gate_m`` of their prediction (X_pred (N, 3) m) to a detection within ``anchor_regate_clear`` median rest
+    lengths of another predicted keypoint, not the anchor's neighbour: on the object (a spur of its skeleton, the
+    end of a part seen short), so not that anchor."""
+    out = np.zeros(len(m), bool)
+    ai = topology.anchor_idx
+    far = ask & (m >= 0)
+    if not far.any() or len(X_pred) < 2:
+        return out
+    far[far] = np.linalg.norm(det[m[far]] - X_pred[ai[far]], axis=1) > params.anchor_gate_m
+    e = np.asarray(topology.edges, np.int64)
+    reach = params.anchor_regate_clear * float(np.median(topology.rest))
+    for a in np.flatnonzero(far):
+        k = ai[a]
+        own = np.zeros(len(X_pred), bool)
+        own[k] = True
+        own[e[e[:, 0] == k, 1]] = True
+        own[e[e[:, 1] == k, 0]] = True
+        d = np.linalg.norm(X_pred[~own] - det[m[a]], axis=1)
+        out[a] = bool(len(d)) and float(d.min()) < reach
+    return out
+
+
 def short_tips(
     topology: Topology, idx: np.ndarray, pos: np.ndarray, kinds: np.ndarray, X_pred: np.ndarray,
     params: TrackingParams,
@@ -222,7 +248,9 @@ def track_frame(
     re-detected anchor of those keypoints (``Tracker.step``: where a held end or corner leaves the fingers).
     open_space: points (K, 3) m -> (K,) bool, where the frame's depth sees through (``geometry.in_open_space``); a
     cloth's hidden keypoint that the relaxation after the solve would put there stays where the solve put it.
-    recapture: (A,) bool the anchors that may be matched within ``anchor_regate_m`` (``match_anchors``).
+    recapture: (A,) bool the anchors not re-detected and kept the frame before: a cloth's others are not matched
+    within ``anchor_regate_m`` (``match_anchors``), a 1D object's others only by a detection off the object
+    (``regate_on_object``).
     used: (A,) bool, filled when given: which anchors were re-detected and kept (consistent) this frame.
     Returns (X (N, 3) float64 m, number of matched anchors).
     """
@@ -236,8 +264,10 @@ def track_frame(
         params.anchor_gate_m,
         topology.kind == "1d",
         params.anchor_regate_m,
-        recapture,
+        recapture if topology.kind == "2d" else None,
     )
+    if topology.kind == "1d" and recapture is not None:
+        m[regate_on_object(topology, Xm, det_pos, m, ~np.asarray(recapture, bool), params)] = -1
     idx = [ai[m >= 0]]
     pos = [det_pos[m[m >= 0]]]
     kinds = topology.anchor_kind[m >= 0]
@@ -524,7 +554,9 @@ class Tracker:
         assert topo is not None
         p = self.params
         ai = topo.anchor_idx
-        m = match_anchors(pred[ai], topo.anchor_kind, det, kinds, p.anchor_gate_m, True, p.anchor_regate_m, recapture)
+        m = match_anchors(pred[ai], topo.anchor_kind, det, kinds, p.anchor_gate_m, True, p.anchor_regate_m)
+        if recapture is not None:
+            m[regate_on_object(topo, pred, det, m, ~recapture, p)] = -1
         held = set(self.grasp_idx[self.grasp_idx >= 0].tolist())
         row = {tuple(sorted(e)): i for i, e in enumerate(np.asarray(topo.edges).tolist())}
         for ch in topo.chains:
