@@ -313,6 +313,19 @@ VARIANTS: list[dict[str, Any]] = [
          camera=[1.45, -0.15, 0.7, 0.45, -0.45, 0.2], branch_len=0.24, radius=0.0055),
     dict(name="cloth_slow_k259", obj="cloth", speed="slow", seconds=5, seed=259,
          camera=[1.35, -1.1, 0.9, 0.45, -0.45, 0.2], rgb=[0.9, 0.9, 0.9]),
+    # generated after 26a4152, at camera poses no other row uses, and only scored
+    dict(name="rope_fast_m261", obj="rope", speed="fast", seconds=5, seed=261,
+         camera=[1.1, -0.95, 1.15, 0.45, -0.45, 0.15], length=0.92, radius=0.0058, rgb=[0.85, 0.35, 0.6]),
+    dict(name="bdlo_medium_m262", obj="bdlo", speed="medium", seconds=5, seed=262,
+         camera=[1.5, 0.05, 1.2, 0.45, -0.45, 0.15], branch_len=0.27, radius=0.005, rgb=[0.3, 0.8, 0.3]),
+    dict(name="cloth_medium_m263", obj="cloth", speed="medium", seconds=5, seed=263,
+         camera=[1.45, -0.35, 1.3, 0.45, -0.45, 0.15], rgb=[0.95, 0.5, 0.2]),
+    dict(name="rope_slow_m264", obj="rope", speed="slow", seconds=5, seed=264,
+         camera=[1.7, -0.6, 0.95, 0.45, -0.45, 0.2], length=0.86, radius=0.0047),
+    dict(name="bdlo_fast_m265", obj="bdlo", speed="fast", seconds=5, seed=265,
+         camera=[1.05, -0.15, 1.05, 0.45, -0.45, 0.2], branch_len=0.25, radius=0.006, rgb=[0.6, 0.2, 0.9]),
+    dict(name="cloth_fast_m266", obj="cloth", speed="fast", seconds=5, seed=266,
+         camera=[1.25, -0.8, 1.05, 0.5, -0.45, 0.2], rgb=[0.4, 0.6, 0.95]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
