@@ -233,6 +233,7 @@ def track_frame(
     open_space: Callable[[np.ndarray], np.ndarray] | None = None,
     recapture: np.ndarray | None = None,
     used: np.ndarray | None = None,
+    match: np.ndarray | None = None,
 ) -> tuple[np.ndarray, int]:
     """One step of Algorithm 2: match anchors, add grasped TCP anchors, solve warm-started from X_prev.
 
@@ -252,6 +253,8 @@ def track_frame(
     within ``anchor_regate_m`` (``match_anchors``), a 1D object's others only by a detection off the object
     (``regate_on_object``).
     used: (A,) bool, filled when given: which anchors were re-detected and kept (consistent) this frame.
+    match: (A,) int64, filled when given: each anchor's detection (index into det_pos, -1: none) before the
+    consistency check (``Tracker._grow`` reads the tips' from it).
     Returns (X (N, 3) float64 m, number of matched anchors).
     """
     ai = topology.anchor_idx
@@ -268,6 +271,8 @@ def track_frame(
     )
     if topology.kind == "1d" and recapture is not None:
         m[regate_on_object(topology, Xm, det_pos, m, ~np.asarray(recapture, bool), params)] = -1
+    if match is not None:
+        match[:] = m
     idx = [ai[m >= 0]]
     pos = [det_pos[m[m >= 0]]]
     kinds = topology.anchor_kind[m >= 0]
@@ -507,12 +512,11 @@ class Tracker:
         cloud = np.ascontiguousarray(cloud, np.float64)
         tcp_now = None if tcp is None else np.asarray(tcp, np.float64).reshape(-1, 3)
         warm = self.keypoints
-        if hidden is not None and hidden.any() and tcp_now is not None and len(tcp_now) \
-                and self._tcp is not None and self._tcp.shape == tcp_now.shape:
+        move = self._hand_motion(tcp_now)
+        if hidden is not None and hidden.any() and move is not None:
             h = np.flatnonzero(hidden)
-            near = np.argmin(np.linalg.norm(self.keypoints[h, None, :] - self._tcp[None, :, :], axis=2), axis=1)
             warm = self.keypoints.copy()
-            warm[h] += (tcp_now - self._tcp)[near]
+            warm[h] += move[h]
             pred = pred.copy()
             pred[h] = warm[h]
         self._tcp = tcp_now
@@ -522,9 +526,9 @@ class Tracker:
             warm = warm.copy()
             warm[soft[0]] = soft[1]
         recapture = None if self._kept is None else ~self._kept
-        used = np.zeros(na, bool)
+        used, match = np.zeros(na, bool), np.full(na, -1, np.int64)
         X, matched = track_frame(warm, self.topology, cloud, det, kinds, p, tcp, self.grasp_idx, pred, hidden, soft,
-                                 open_space, recapture, used)
+                                 open_space, recapture, used, match)
         tangled, repaired = 0, False
         if self.topology.grid_shape is not None:
             X, matched, tangled, repaired = self._untangle(X, matched, cloud, det, kinds, tcp, held)
@@ -535,28 +539,23 @@ class Tracker:
                 if hidden is None or not hidden[j]:
                     self._exit[g, k, j] = rot[g].T @ (X[j] - tcp_now[g])
         if self.topology.kind == "1d" and p.grow_frames > 0:
-            self._grow(X, pred, det, kinds, recapture)
+            self._grow(X, det, match)
         self._kept = used
         res = self._result(X, cloud, matched, na, tangled=tangled, repaired=repaired, hidden=hidden)
         self.last_timings_ms = {"anchors": 1e3 * (t1 - t0), "solve": 1e3 * (time.perf_counter() - t1)}
         return res
 
-    def _grow(
-        self, X: np.ndarray, pred: np.ndarray, det: np.ndarray, kinds: np.ndarray, recapture: np.ndarray | None
-    ) -> None:
+    def _grow(self, X: np.ndarray, det: np.ndarray, m: np.ndarray) -> None:
         """Lengthen a 1D chain whose free tip (not held) was re-detected farther from the chain's other node (in
         X (N, 3) m, this frame's solution) than (1 + ``anchor_edge_tol``) of the chain's rest length in
         ``grow_frames`` frames running: the chain's rest lengths are scaled (in place, the track's topology) to
         that distance. Initialisation measures what it sees; a branch hanging end-on to the camera, or lying
-        partly hidden, is longer. The tips are matched as ``track_frame`` matches them (pred (N, 3) m,
-        detections det (D, 3) m of kinds (D,), recapture (A,) bool or None)."""
+        partly hidden, is longer. m (A,) int64: each anchor's detection in det (D, 3) m, -1 none, as
+        ``track_frame`` matched them (its ``match``)."""
         topo = self.topology
         assert topo is not None
         p = self.params
         ai = topo.anchor_idx
-        m = match_anchors(pred[ai], topo.anchor_kind, det, kinds, p.anchor_gate_m, True, p.anchor_regate_m)
-        if recapture is not None:
-            m[regate_on_object(topo, pred, det, m, ~recapture, p)] = -1
         held = set(self.grasp_idx[self.grasp_idx >= 0].tolist())
         row = {tuple(sorted(e)): i for i, e in enumerate(np.asarray(topo.edges).tolist())}
         for ch in topo.chains:
@@ -682,20 +681,26 @@ class Tracker:
             return self._result(self.keypoints, cloud, 0, len(self.topology.anchor_idx), force_bad=True)
         return None
 
+    def _hand_motion(self, tcp: np.ndarray | None) -> np.ndarray | None:
+        """(N, 3) m: each keypoint's nearest gripper's motion from the last tracked frame's TCPs to tcp (G, 3) m
+        (what a hand hides moves with it); None without TCPs in both frames, or when their count changed."""
+        if tcp is None or self._tcp is None or not len(tcp) or self._tcp.shape != tcp.shape:
+            return None
+        assert self.keypoints is not None
+        near = np.argmin(np.linalg.norm(self.keypoints[:, None, :] - self._tcp[None, :, :], axis=2), axis=1)
+        return (tcp - self._tcp)[near]
+
     def _carry(self, tcp: np.ndarray | None) -> None:
         """Move the keypoints with the hands through a frame with too little cloud to track (the object behind an
         arm): each by its nearest gripper's motion since the last frame (TCPs tcp (G, 3) m), held ones to their
         TCPs, the others then relaxed to their rest lengths (``relax_hidden``). No velocity is kept: the next
         tracked frame starts from here."""
         assert self.topology is not None and self.keypoints is not None
-        if tcp is None or self._tcp is None:
+        now = None if tcp is None else np.asarray(tcp, np.float64).reshape(-1, 3)
+        move = self._hand_motion(now)
+        if move is None or now is None:
             return
-        now = np.asarray(tcp, np.float64).reshape(-1, 3)
-        if now.shape != self._tcp.shape or not len(now):
-            return
-        X = self.keypoints
-        near = np.argmin(np.linalg.norm(X[:, None, :] - self._tcp[None, :, :], axis=2), axis=1)
-        X = X + (now - self._tcp)[near]
+        X = self.keypoints + move
         held = (self.grasp_idx >= 0) & (self.grasp_idx < len(X))
         X[self.grasp_idx[held]] = now[: len(held)][held]
         movable = np.ones(len(X), bool)
