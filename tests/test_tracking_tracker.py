@@ -493,3 +493,35 @@ def test_a_kept_tip_is_not_recaptured_by_a_detection_on_the_rope() -> None:
     assert on_rope.tolist() == [True, False]
     assert not beyond.any() and not near.any()
     assert not regate_on_object(topo, X0, det, np.array([0, -1]), ~kept, P).any()  # not kept: recaptured
+
+
+def test_cloudless_keypoints_are_those_whose_nearest_cloud_is_another_part() -> None:
+    """A 1D keypoint whose nearest cloud point lies beyond the reach and belongs to a keypoint that is not its
+    neighbour has no cloud of its own; one beside its neighbour's cloud, or on its own, has."""
+    from tracking.tracker import cloudless
+
+    topo, X0 = _straight_rope()  # 11 keypoints 2 cm apart along x
+    xs = np.linspace(0.0, 0.1, 200)  # only keypoints 0-5 are seen
+    cloud = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)
+    assert np.flatnonzero(cloudless(topo, X0, cloud, 0.01)).tolist() == [7, 8, 9, 10]
+    assert not cloudless(topo, X0, cloud, 0.2).any()  # all within the reach
+    assert not cloudless(topo, X0, np.zeros((0, 3)), 0.01).any()
+
+
+def test_a_rope_part_without_cloud_is_not_folded_onto_another_part() -> None:
+    """A U-shaped rope whose right leg has no cloud (hidden where no arm mask says so): the leg stays a leg (its
+    lowest keypoint, beside the bottom's cloud, is projected onto it) instead of folding onto the left leg."""
+    from tracking.tracker import track_frame
+
+    s = 0.02
+    left = [(0.0, y) for y in (0.08, 0.06, 0.04, 0.02, 0.0)]
+    X0 = np.array([(x, y, 0.0) for x, y in [*left, (0.02, 0.0), (0.04, 0.0), (0.04, 0.02), (0.04, 0.04),
+                                             (0.04, 0.06), (0.04, 0.08)]])
+    topo, _ = _straight_rope(len(X0), s)
+    t = np.linspace(0.0, 1.0, 200)
+    cloud = np.concatenate([np.stack([0 * t, 0.08 * t, 0 * t], 1), np.stack([0.04 * t, 0 * t, 0 * t], 1)])
+    no_det = (np.zeros((0, 3)), np.zeros(0, np.int64))
+    X, _ = track_frame(X0, topo, cloud, *no_det, P)
+    assert np.abs(X[7:, 0] - 0.04).max() < 0.002  # the unseen leg stays the right leg, in order up it
+    assert (np.diff(X[7:, 1]) > 0.9 * s).all()
+    assert np.abs(np.linalg.norm(np.diff(X[:7], axis=0), axis=1) - s).max() < 0.002

@@ -129,6 +129,9 @@ class TrackingParams:
         the object (a cloth turned edge-on: its near strip), and the edges, its grasp and its hand's motion
         place it instead. A cloth keypoint in open space with such a layer within this reach across the image
         is out of sight behind it too (``hidden_behind``'s reach_m), not pulled onto the layer's nearest point.
+        A 1D keypoint whose nearest cloud point lies beyond this reach and nearer another keypoint, not its
+        neighbour, is solved as a hidden one (``tracker.cloudless``: its own part is out of sight where no arm
+        mask says so, e.g. under a hand seen from above, and that cloud is another part of the object).
       hidden_bend: each solver sweep, such a hidden 1D keypoint moves this fraction of the way to where its chain
         runs smoothest (least second differences over two neighbours each side): the hidden stretch continues the
         seen rope's direction into the hand instead of cutting a straight chord; more fights the edge lengths.

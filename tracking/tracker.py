@@ -186,6 +186,24 @@ def regate_on_object(
     return out
 
 
+def cloudless(topology: Topology, X: np.ndarray, cloud: np.ndarray | cKDTree, reach_m: float) -> np.ndarray:
+    """(N,) bool: the keypoints X (N, 3) m whose nearest point of the cloud ((M, 3) m or its cKDTree) lies
+    farther than reach_m and nearer another keypoint than them, one that is not their neighbour (topology's
+    edges): that cloud is another part of the object, and projecting onto it folds the chain. Their own part is
+    out of sight where no arm mask says so (a rope under a hand seen from above, a stretch behind the arm that
+    the prediction put beside it)."""
+    tree = cloud if isinstance(cloud, cKDTree) else cKDTree(np.asarray(cloud, np.float64).reshape(-1, 3))
+    N = len(X)
+    if tree.n == 0 or N < 3:
+        return np.zeros(N, bool)
+    d, nn = tree.query(X)
+    owner = np.argmin(np.linalg.norm(tree.data[nn][:, None, :] - X[None], axis=-1), axis=1)
+    e = np.asarray(topology.edges, np.int64)
+    mine = np.eye(N, dtype=bool)
+    mine[e[:, 0], e[:, 1]] = mine[e[:, 1], e[:, 0]] = True
+    return (d > reach_m) & ~mine[np.arange(N), owner]
+
+
 def short_tips(
     topology: Topology, idx: np.ndarray, pos: np.ndarray, kinds: np.ndarray, X_pred: np.ndarray,
     params: TrackingParams,
@@ -244,7 +262,8 @@ def track_frame(
     Keypoints held by a gripper (grasp_idx >= 0) are fixed at that gripper's TCP (G, 3) m, also in the
     ``use_anchors=False`` ablation, which leaves out the re-detected anchors only: the TCPs are the robot's
     inputs, not detections (the paper's ablation, where a rope held at both ends tracks as the full method).
-    hidden: (N,) bool keypoints out of sight (``solve_keypoints``; ``Tracker.step``).
+    hidden: (N,) bool keypoints out of sight (``solve_keypoints``; ``Tracker.step``); a 1D object's keypoints
+    whose nearest cloud is another part of it (``cloudless``) are solved as hidden ones too.
     soft: more anchors, (K,) int64 keypoints, (K, 3) m positions, (K,) weights in (0, 1), in place of any
     re-detected anchor of those keypoints (``Tracker.step``: where a held end or corner leaves the fingers).
     open_space: points (K, 3) m -> (K,) bool, where the frame's depth sees through (``geometry.in_open_space``); a
@@ -305,10 +324,15 @@ def track_frame(
         keep = ~np.isin(aidx, soft[0])
         aidx, apos = np.concatenate([aidx[keep], soft[0]]), np.concatenate([apos[keep], soft[1]])
         weight = np.concatenate([weight[keep], soft[2]])
+    solve_hidden = hidden  # a 1D object's keypoints without cloud of their own are solved as hidden ones too
+    if topology.kind == "1d" and len(topology.rest):
+        off = cloudless(topology, X_prev, cloud, params.hidden_reach * float(np.median(topology.rest)))
+        if off.any():
+            solve_hidden = off if hidden is None else np.asarray(hidden, bool) | off
     X = solve_keypoints(
         X_prev, topology.edges, topology.rest, aidx, apos, cloud, params.track_iterations, params, topology.colours,
-        weight, hidden,
-        chain_neighbours(topology.chains, len(X_prev)) if hidden is not None and topology.kind == "1d" else None,
+        weight, solve_hidden,
+        chain_neighbours(topology.chains, len(X_prev)) if solve_hidden is not None and topology.kind == "1d" else None,
         symmetric_last=topology.kind == "1d",
     )
     if topology.kind == "2d" and hidden is not None and params.use_edge_projection:
