@@ -326,6 +326,19 @@ VARIANTS: list[dict[str, Any]] = [
          camera=[1.05, -0.15, 1.05, 0.45, -0.45, 0.2], branch_len=0.25, radius=0.006, rgb=[0.6, 0.2, 0.9]),
     dict(name="cloth_fast_m266", obj="cloth", speed="fast", seconds=5, seed=266,
          camera=[1.25, -0.8, 1.05, 0.5, -0.45, 0.2], rgb=[0.4, 0.6, 0.95]),
+    # generated after a35ac5f, at camera poses no other row uses, and scored before any change they prompted
+    dict(name="rope_slow_n271", obj="rope", speed="slow", seconds=5, seed=271,
+         camera=[1.35, -0.85, 1.0, 0.45, -0.45, 0.15], length=0.88, radius=0.0052, rgb=[0.1, 0.5, 0.9]),
+    dict(name="bdlo_fast_n272", obj="bdlo", speed="fast", seconds=5, seed=272,
+         camera=[1.2, 0.2, 1.3, 0.45, -0.45, 0.15], branch_len=0.23, radius=0.0048, rgb=[0.9, 0.2, 0.2]),
+    dict(name="cloth_slow_n273", obj="cloth", speed="slow", seconds=5, seed=273,
+         camera=[1.55, -0.15, 1.0, 0.45, -0.45, 0.2], rgb=[0.7, 0.7, 0.3]),
+    dict(name="rope_medium_n274", obj="rope", speed="medium", seconds=5, seed=274,
+         camera=[0.85, -0.8, 1.3, 0.45, -0.45, 0.15], length=0.97, radius=0.0068, rgb=[0.9, 0.9, 0.9]),
+    dict(name="bdlo_slow_n275", obj="bdlo", speed="slow", seconds=5, seed=275,
+         camera=[1.6, -0.4, 0.8, 0.45, -0.45, 0.2], branch_len=0.29, radius=0.0058, rgb=[0.2, 0.3, 0.2]),
+    dict(name="cloth_medium_n276", obj="cloth", speed="medium", seconds=5, seed=276,
+         camera=[1.15, -1.0, 1.15, 0.45, -0.45, 0.15], rgb=[0.6, 0.2, 0.5]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
