@@ -602,6 +602,24 @@ def test_table_level_points_go_but_a_flat_objects_beside_where_it_lay():
     assert len(select_clusters_near(lying, lab2, lying[::3], P, table, flat=False)) == 0
 
 
+def test_a_tubes_cluster_is_kept_only_near_where_the_object_was():
+    # the table's noise beside a rope joins the rope's cluster and trails 15 cm away from it: a rope (not flat)
+    # keeps the points within track_gate_m of where it was a frame ago, a cloth (flat) its whole cluster
+    from tracking.segmentation import dbscan_labels, select_clusters_near
+
+    rope = np.stack([np.linspace(0.0, 0.3, 100), np.zeros(100), np.zeros(100)], axis=1)
+    trail = np.stack([np.full(40, 0.3), np.linspace(0.004, 0.16, 40), np.zeros(40)], axis=1)
+    pts = np.concatenate([rope, trail])
+    lab = dbscan_labels(pts, P.dbscan_eps_m, P.dbscan_min_points)
+    assert len(np.unique(lab)) == 1 and (lab >= 0).all()  # one cluster
+    before = rope[::4] + [0.0, 0.01, 0.0]  # where the rope was: 1 cm beside
+    tube = select_clusters_near(pts, lab, before, P, flat=False)
+    d = np.linalg.norm(pts[:, None] - before[None], axis=2).min(axis=1)
+    np.testing.assert_array_equal(tube, pts[d < P.track_gate_m])
+    assert len(tube) < len(pts) and len(tube) >= 100
+    assert len(select_clusters_near(pts, lab, before, P, flat=True)) == len(pts)
+
+
 def test_gaps_hidden_only_when_the_mask_covers_the_way_beyond_the_start() -> None:
     K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
     T = np.eye(4)  # camera at the origin looking along +z: (x, y, 1 m) is seen at pixel (320 + 500 x, 240 + 500 y)

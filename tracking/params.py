@@ -46,7 +46,8 @@ class TrackingParams:
       no_return_open_m: a region of the references without a reading in any of them and wider than
         this at 1 m is empty space beyond the sensor's range: its background is depth_max_m, so an
         object in front of it counts as changed (0: such pixels stay unknown), m.
-      track_gate_m: in tracking, a cluster is kept if some point lies within this of the previous keypoints, m.
+      track_gate_m: in tracking, a cluster is kept if some point lies within this of the previous keypoints, m;
+        of a 1D object's kept clusters only the points within this of the previous object.
       track_attach_m: in tracking, points DBSCAN leaves out are kept within this of the parts of the
         previous object the kept clusters do not cover, and a cloth's points of kept clusters less than
         attach_min_height_m above the table only within this of the previous object (``select_clusters_near``), m.

@@ -375,7 +375,10 @@ def select_clusters_near(
     (a shadow's, where stereo matching is poor) joins the cluster of a part hanging or lying above it and
     extends its tips, and a rope or branch lying there shows its top, a diameter above the table. An object
     that can lie ``flat`` on the table (a cloth, a millimetre or two thick) keeps those within
-    ``track_attach_m`` of the previous object: it stays within that of where it lay."""
+    ``track_attach_m`` of the previous object: it stays within that of where it lay. An object that cannot (a
+    rope, a branched rope) keeps of its clusters only the points within ``track_gate_m`` of the previous object:
+    a cluster of the table's stereo noise beside a part lying low joins through a point near it and reaches
+    10-17 cm beyond, where it drew a tip's keypoint off the object (a cloth's sheet is kept whole)."""
     ok = labels >= 0
     if len(keypoints) == 0 or len(points) == 0:
         return np.zeros((0, 3))
@@ -384,6 +387,9 @@ def select_clusters_near(
     keep = np.zeros(len(points), bool)
     keep[ok] = near[labels[ok]]
     ref = keypoints if samples is None else samples
+    if not flat and keep.any():  # a cluster reaching far beyond the previous object is partly something else
+        kk = np.flatnonzero(keep)
+        keep[kk[~_near_points(points[kk], ref, params.track_gate_m)]] = False
     height = None if support is None else points @ support[0] - support[1]  # m above the table
     if height is not None:
         low = np.flatnonzero(keep & (np.abs(height) < params.attach_min_height_m))
