@@ -210,11 +210,18 @@ def centre_on_ridge(
     return X + across[:, None] * lat + along_view[:, None] * dep
 
 
+def adjacency(edges: np.ndarray, n_keypoints: int, self_loops: bool = False) -> np.ndarray:
+    """(N, N) bool: which keypoints edges (E, 2) join; with self_loops each keypoint is its own neighbour too."""
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    adj = np.eye(n_keypoints, dtype=bool) if self_loops else np.zeros((n_keypoints, n_keypoints), bool)
+    adj[edges[:, 0], edges[:, 1]] = adj[edges[:, 1], edges[:, 0]] = True
+    return adj
+
+
 def hop_neighbours(edges: np.ndarray, n_keypoints: int, start: int, hops: int) -> np.ndarray:
     """The keypoints (K,) int64 within ``hops`` edges (E, 2) of keypoint ``start``, itself excluded, nearest
     first (breadth-first over the graph)."""
-    adj = np.zeros((n_keypoints, n_keypoints), bool)
-    adj[edges[:, 0], edges[:, 1]] = adj[edges[:, 1], edges[:, 0]] = True
+    adj = adjacency(edges, n_keypoints)
     seen = np.zeros(n_keypoints, bool)
     seen[start] = True
     front, out = np.array([start]), []

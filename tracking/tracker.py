@@ -17,11 +17,11 @@ from scipy.spatial import cKDTree
 
 from tracking.anchors import detect_anchors_1d, detect_anchors_2d
 from tracking.init import Initialisation, Topology, initialise
-from tracking.kernels import warm_up
+from tracking.kernels import nearest, warm_up
 from tracking.metrics import chamfer_mm, edge_rmse_mm
 from tracking.params import TrackingParams
 from tracking.skeleton import LEAF
-from tracking.solver import chain_neighbours, hop_neighbours, relax_hidden, solve_keypoints
+from tracking.solver import adjacency, chain_neighbours, hop_neighbours, relax_hidden, solve_keypoints
 from tracking.tangle import chain_reversals, relift_chains, relift_grid, tangled_cells, unfold_chains
 
 
@@ -173,16 +173,10 @@ def regate_on_object(
     if not far.any() or len(X_pred) < 2:
         return out
     far[far] = np.linalg.norm(det[m[far]] - X_pred[ai[far]], axis=1) > params.anchor_gate_m
-    e = np.asarray(topology.edges, np.int64)
-    reach = params.anchor_regate_clear * float(np.median(topology.rest))
-    for a in np.flatnonzero(far):
-        k = ai[a]
-        own = np.zeros(len(X_pred), bool)
-        own[k] = True
-        own[e[e[:, 0] == k, 1]] = True
-        own[e[e[:, 1] == k, 0]] = True
-        d = np.linalg.norm(X_pred[~own] - det[m[a]], axis=1)
-        out[a] = bool(len(d)) and float(d.min()) < reach
+    a = np.flatnonzero(far)
+    d = np.linalg.norm(X_pred[None, :, :] - det[m[a]][:, None, :], axis=2)  # (F, N)
+    d[adjacency(topology.edges, len(X_pred), self_loops=True)[ai[a]]] = np.inf  # the anchor and its neighbours
+    out[a] = d.min(axis=1) < params.anchor_regate_clear * float(np.median(topology.rest))
     return out
 
 
@@ -192,16 +186,13 @@ def cloudless(topology: Topology, X: np.ndarray, cloud: np.ndarray | cKDTree, re
     edges): that cloud is another part of the object, and projecting onto it folds the chain. Their own part is
     out of sight where no arm mask says so (a rope under a hand seen from above, a stretch behind the arm that
     the prediction put beside it)."""
-    tree = cloud if isinstance(cloud, cKDTree) else cKDTree(np.asarray(cloud, np.float64).reshape(-1, 3))
+    pts = cloud.data if isinstance(cloud, cKDTree) else np.ascontiguousarray(cloud, np.float64).reshape(-1, 3)
     N = len(X)
-    if tree.n == 0 or N < 3:
+    if len(pts) == 0 or N < 3:
         return np.zeros(N, bool)
-    d, nn = tree.query(X)
-    owner = np.argmin(np.linalg.norm(tree.data[nn][:, None, :] - X[None], axis=-1), axis=1)
-    e = np.asarray(topology.edges, np.int64)
-    mine = np.eye(N, dtype=bool)
-    mine[e[:, 0], e[:, 1]] = mine[e[:, 1], e[:, 0]] = True
-    return (d > reach_m) & ~mine[np.arange(N), owner]
+    d, nn = nearest(np.ascontiguousarray(X, np.float64), pts)  # the solver's slab search: no tree to build
+    owner = np.argmin(np.linalg.norm(pts[nn][:, None, :] - X[None], axis=-1), axis=1)
+    return (d > reach_m) & ~adjacency(topology.edges, N, self_loops=True)[np.arange(N), owner]
 
 
 def short_tips(
