@@ -339,6 +339,20 @@ VARIANTS: list[dict[str, Any]] = [
          camera=[1.6, -0.4, 0.8, 0.45, -0.45, 0.2], branch_len=0.29, radius=0.0058, rgb=[0.2, 0.3, 0.2]),
     dict(name="cloth_medium_n276", obj="cloth", speed="medium", seconds=5, seed=276,
          camera=[1.15, -1.0, 1.15, 0.45, -0.45, 0.15], rgb=[0.6, 0.2, 0.5]),
+    # generated at the start of session 34, at camera poses no other row uses, and scored before any change (seed
+    # 285 put a waypoint out of the right arm's reach)
+    dict(name="rope_fast_p281", obj="rope", speed="fast", seconds=5, seed=281,
+         camera=[1.5, -0.75, 1.25, 0.45, -0.45, 0.15], length=0.84, radius=0.0062, rgb=[0.95, 0.75, 0.1]),
+    dict(name="bdlo_medium_p282", obj="bdlo", speed="medium", seconds=5, seed=282,
+         camera=[1.3, -0.5, 1.4, 0.45, -0.45, 0.15], branch_len=0.21, radius=0.0052, rgb=[0.8, 0.8, 0.8]),
+    dict(name="cloth_fast_p283", obj="cloth", speed="fast", seconds=5, seed=283,
+         camera=[1.45, -0.85, 1.1, 0.45, -0.45, 0.2], rgb=[0.2, 0.4, 0.7]),
+    dict(name="rope_slow_p284", obj="rope", speed="slow", seconds=5, seed=284,
+         camera=[1.0, -0.25, 1.35, 0.45, -0.45, 0.15], length=0.93, radius=0.0042, rgb=[0.5, 0.2, 0.1]),
+    dict(name="bdlo_fast_p287", obj="bdlo", speed="fast", seconds=5, seed=287,
+         camera=[1.55, 0.0, 0.95, 0.45, -0.45, 0.2], branch_len=0.26, radius=0.0062, rgb=[0.1, 0.6, 0.5]),
+    dict(name="cloth_medium_p286", obj="cloth", speed="medium", seconds=5, seed=286,
+         camera=[1.2, -0.25, 1.25, 0.45, -0.45, 0.15], rgb=[0.9, 0.9, 0.5]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
