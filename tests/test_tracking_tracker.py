@@ -357,13 +357,13 @@ def test_a_cloths_hidden_part_keeps_its_edge_lengths(sweeps: int) -> None:
     soft = (np.array([corner]), np.array([[0.17, 0.25, 0.0]]), np.array([0.2]))
     params = replace(P, hidden_relax_sweeps=sweeps)
     no_det = (np.zeros((0, 3)), np.zeros(0, np.int64))
-    X, _ = track_frame(X0, topo, seen, *no_det, params, X0[[C - 1]], np.array([C - 1]), hidden=hidden, soft=soft)
+    X = track_frame(X0, topo, seen, *no_det, params, X0[[C - 1]], np.array([C - 1]), hidden=hidden, soft=soft).X
     assert np.allclose(X[C - 1], X0[C - 1])  # held
     inside = hidden[topo.edges].all(axis=1)  # the edges between hidden keypoints
     err = edge_rmse_mm(X, topo.edges[inside], topo.rest[inside])
     if sweeps:
-        ref, _ = track_frame(X0, topo, seen, *no_det, replace(P, hidden_relax_sweeps=0), X0[[C - 1]],
-                             np.array([C - 1]), hidden=hidden, soft=soft)
+        ref = track_frame(X0, topo, seen, *no_det, replace(P, hidden_relax_sweeps=0), X0[[C - 1]],
+                          np.array([C - 1]), hidden=hidden, soft=soft).X
         assert np.array_equal(X[~hidden], ref[~hidden])  # only the hidden keypoints moved
         assert err < 1.2
         assert edge_rmse_mm(X, topo.edges, topo.rest) < edge_rmse_mm(ref, topo.edges, topo.rest)
@@ -388,8 +388,8 @@ def test_a_hidden_cloth_keypoint_is_never_relaxed_into_open_space() -> None:
     hidden = X0[:, 0] > 0.16
     soft = (np.array([R * C - 1]), np.array([[0.17, 0.25, 0.0]]), np.array([0.2]))
     args = (X0, topo, seen, np.zeros((0, 3)), np.zeros(0, np.int64), P, X0[[C - 1]], np.array([C - 1]))
-    solved, _ = track_frame(*args[:5], replace(P, hidden_relax_sweeps=0), *args[6:], hidden=hidden, soft=soft)
-    relaxed, _ = track_frame(*args, hidden=hidden, soft=soft)
+    solved = track_frame(*args[:5], replace(P, hidden_relax_sweeps=0), *args[6:], hidden=hidden, soft=soft).X
+    relaxed = track_frame(*args, hidden=hidden, soft=soft).X
 
     step = np.linalg.norm(relaxed - solved, axis=1)
     # the camera sees through the place the relaxation gives keypoint k (a ball no solved keypoint is in)
@@ -399,7 +399,7 @@ def test_a_hidden_cloth_keypoint_is_never_relaxed_into_open_space() -> None:
     def open_space(pts: np.ndarray) -> np.ndarray:
         return np.linalg.norm(pts - relaxed[k], axis=1) < 0.5 * clear[k]
 
-    X, _ = track_frame(*args, hidden=hidden, soft=soft, open_space=open_space)
+    X = track_frame(*args, hidden=hidden, soft=soft, open_space=open_space).X
     into = hidden & open_space(relaxed)
     assert clear[k] > 0.002 and into[k] and (hidden & ~into).any()
     assert not open_space(solved[hidden]).any()
@@ -429,8 +429,8 @@ def test_a_tip_seen_short_pulls_its_keypoint_instead_of_fixing_it() -> None:
     fixed_params = replace(P, tip_short_tol=0.0)
     assert not short_tips(topo, np.array([0, N - 1]), det, kinds, X0, fixed_params).any()
 
-    fixed, _ = track_frame(X0, topo, cloud, det, kinds, fixed_params)
-    soft, _ = track_frame(X0, topo, cloud, det, kinds, P)
+    fixed = track_frame(X0, topo, cloud, det, kinds, fixed_params).X
+    soft = track_frame(X0, topo, cloud, det, kinds, P).X
     assert np.allclose(fixed[0], det[0])  # the paper's hard tip: at the detection
     assert np.linalg.norm(soft[0] - det[0]) > 0.002  # pulled part of the way only (to 8 mm of 12)
     def length(X: np.ndarray) -> float:
@@ -473,8 +473,7 @@ def test_track_frame_reports_the_anchors_it_kept() -> None:
     topo, X0 = _straight_rope()
     xs = np.linspace(0.0, 0.2, 400)
     cloud = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)
-    used = np.zeros(len(topo.anchor_idx), bool)
-    track_frame(X0, topo, cloud, X0[[0]], np.array([LEAF]), P, used=used)
+    used = track_frame(X0, topo, cloud, X0[[0]], np.array([LEAF]), P).used
     assert used.tolist() == (topo.anchor_idx == 0).tolist()
     assert used.sum() == 1
 
@@ -521,7 +520,7 @@ def test_a_rope_part_without_cloud_is_not_folded_onto_another_part() -> None:
     t = np.linspace(0.0, 1.0, 200)
     cloud = np.concatenate([np.stack([0 * t, 0.08 * t, 0 * t], 1), np.stack([0.04 * t, 0 * t, 0 * t], 1)])
     no_det = (np.zeros((0, 3)), np.zeros(0, np.int64))
-    X, _ = track_frame(X0, topo, cloud, *no_det, P)
+    X = track_frame(X0, topo, cloud, *no_det, P).X
     assert np.abs(X[7:, 0] - 0.04).max() < 0.002  # the unseen leg stays the right leg, in order up it
     assert (np.diff(X[7:, 1]) > 0.9 * s).all()
     assert np.abs(np.linalg.norm(np.diff(X[:7], axis=0), axis=1) - s).max() < 0.002

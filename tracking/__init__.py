@@ -52,6 +52,7 @@ _EXPORTS = {  # name -> the submodule that defines it (imported on first use: se
     "edge_colouring": "tracking.solver",
     "solve_keypoints": "tracking.solver",
     "FrameResult": "tracking.tracker",
+    "FrameSolve": "tracking.tracker",
     "Tracker": "tracking.tracker",
     "TrackStatus": "tracking.tracker",
     "assign_grasp_indices": "tracking.tracker",

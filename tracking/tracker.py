@@ -60,6 +60,21 @@ class FrameResult:
     repaired: bool = False
 
 
+@dataclass(frozen=True)
+class FrameSolve:
+    """One solve of Algorithm 2 (``track_frame``).
+
+    X: (N, 3) float64 m keypoints; matched: anchors matched to a detection; match: (A,) int64 each anchor's
+    detection (index into the detections, -1: none) before the consistency check (``Tracker._grow`` reads the
+    tips' from it); used: (A,) bool which anchors were re-detected and kept (consistent).
+    """
+
+    X: np.ndarray
+    matched: int
+    match: np.ndarray
+    used: np.ndarray
+
+
 def _hungarian(C: np.ndarray, bad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Min-cost assignment of cost (A, D) avoiding ``bad`` pairs -> matched (rows, cols)."""
     r, c = linear_sum_assignment(np.where(bad, 1e6, C))
@@ -241,9 +256,7 @@ def track_frame(
     soft: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     open_space: Callable[[np.ndarray], np.ndarray] | None = None,
     recapture: np.ndarray | None = None,
-    used: np.ndarray | None = None,
-    match: np.ndarray | None = None,
-) -> tuple[np.ndarray, int]:
+) -> FrameSolve:
     """One step of Algorithm 2: match anchors, add grasped TCP anchors, solve warm-started from X_prev.
 
     X_prev: (N, 3) m; cloud: (M, 3) m segmented (or its cKDTree);
@@ -262,10 +275,7 @@ def track_frame(
     recapture: (A,) bool the anchors not re-detected and kept the frame before: a cloth's others are not matched
     within ``anchor_regate_m`` (``match_anchors``), a 1D object's others only by a detection off the object
     (``regate_on_object``).
-    used: (A,) bool, filled when given: which anchors were re-detected and kept (consistent) this frame.
-    match: (A,) int64, filled when given: each anchor's detection (index into det_pos, -1: none) before the
-    consistency check (``Tracker._grow`` reads the tips' from it).
-    Returns (X (N, 3) float64 m, number of matched anchors).
+    Returns the keypoints, the anchors matched and kept (``FrameSolve``).
     """
     ai = topology.anchor_idx
     Xm = X_prev if X_pred is None else X_pred
@@ -281,8 +291,6 @@ def track_frame(
     )
     if topology.kind == "1d" and recapture is not None:
         m[regate_on_object(topology, Xm, det_pos, m, ~np.asarray(recapture, bool), params)] = -1
-    if match is not None:
-        match[:] = m
     idx = [ai[m >= 0]]
     pos = [det_pos[m[m >= 0]]]
     kinds = topology.anchor_kind[m >= 0]
@@ -291,8 +299,7 @@ def track_frame(
             topology, idx[0], pos[0], len(X_prev), params.anchor_edge_tol, Xm, params.anchor_neighbour_slack_m
         )
         idx, pos, kinds = [idx[0][ok]], [pos[0][ok]], kinds[ok]
-    if used is not None:
-        used[:] = np.isin(ai, idx[0])
+    used = np.isin(ai, idx[0])
     # a 1D object's tips are sharp in the cloud and stay fixed; its junctions and a cloth's boundary, found
     # less sharply, pull their keypoints part of the way (anchor_stiffness)
     weight = np.full(len(kinds), params.anchor_stiffness)
@@ -335,7 +342,7 @@ def track_frame(
             stay = movable & open_space(relaxed)
             relaxed[stay] = X[stay]
         X = relaxed
-    return X, int((m >= 0).sum())
+    return FrameSolve(X, int((m >= 0).sum()), m, used)
 
 
 def detect_anchors(
@@ -541,9 +548,9 @@ class Tracker:
             warm = warm.copy()
             warm[soft[0]] = soft[1]
         recapture = None if self._kept is None else ~self._kept
-        used, match = np.zeros(na, bool), np.full(na, -1, np.int64)
-        X, matched = track_frame(warm, self.topology, cloud, det, kinds, p, tcp, self.grasp_idx, pred, hidden, soft,
-                                 open_space, recapture, used, match)
+        solve = track_frame(warm, self.topology, cloud, det, kinds, p, tcp, self.grasp_idx, pred, hidden, soft,
+                            open_space, recapture)
+        X, matched = solve.X, solve.matched
         tangled, repaired = 0, False
         if self.topology.grid_shape is not None:
             X, matched, tangled, repaired = self._untangle(X, matched, cloud, det, kinds, tcp, held)
@@ -554,8 +561,8 @@ class Tracker:
                 if hidden is None or not hidden[j]:
                     self._exit[g, k, j] = rot[g].T @ (X[j] - tcp_now[g])
         if self.topology.kind == "1d" and p.grow_frames > 0:
-            self._grow(X, det, match)
-        self._kept = used
+            self._grow(X, det, solve.match)
+        self._kept = solve.used
         res = self._result(X, cloud, matched, na, tangled=tangled, repaired=repaired, hidden=hidden)
         self.last_timings_ms = {"anchors": 1e3 * (t1 - t0), "solve": 1e3 * (time.perf_counter() - t1)}
         return res
@@ -634,7 +641,8 @@ class Tracker:
         X0 = relift_grid(X, self.topology, cloud, self.K, self.T, self.params, held)
         if X0 is None:
             return X, matched, bad, False
-        X2, m2 = track_frame(X0, self.topology, cloud, det, kinds, self.params, tcp, self.grasp_idx, X0)
+        again = track_frame(X0, self.topology, cloud, det, kinds, self.params, tcp, self.grasp_idx, X0)
+        X2, m2 = again.X, again.matched
         bad2 = int(tangled_cells(X2, rows, cols).sum())
         if bad2 < bad:
             return X2, m2, bad2, True
@@ -667,8 +675,9 @@ class Tracker:
         for X0 in starts:
             if X0 is None:
                 continue
-            X2, m2 = track_frame(X0, self.topology, cloud, det, kinds, self.params, tcp, self.grasp_idx, X0, hidden,
-                                 soft, recapture=recapture)
+            again = track_frame(X0, self.topology, cloud, det, kinds, self.params, tcp, self.grasp_idx, X0, hidden,
+                                soft, recapture=recapture)
+            X2, m2 = again.X, again.matched
             bad2 = len(chain_reversals(X2, self.topology.chains, cos_max))
             abs2 = edge_rmse_mm(X2, edges, rest)
             if bad2 < best[2] and abs2 <= abs_best:
