@@ -353,6 +353,19 @@ VARIANTS: list[dict[str, Any]] = [
          camera=[1.55, 0.0, 0.95, 0.45, -0.45, 0.2], branch_len=0.26, radius=0.0062, rgb=[0.1, 0.6, 0.5]),
     dict(name="cloth_medium_p286", obj="cloth", speed="medium", seconds=5, seed=286,
          camera=[1.2, -0.25, 1.25, 0.45, -0.45, 0.15], rgb=[0.9, 0.9, 0.5]),
+    # generated at the start of session 35, at camera poses no other row uses, and scored before any change
+    dict(name="rope_medium_q291", obj="rope", speed="medium", seconds=5, seed=291,
+         camera=[1.4, -0.1, 1.2, 0.45, -0.45, 0.15], length=0.95, radius=0.0066, rgb=[0.3, 0.9, 0.6]),
+    dict(name="bdlo_slow_q292", obj="bdlo", speed="slow", seconds=5, seed=292,
+         camera=[1.15, -0.7, 1.35, 0.45, -0.45, 0.15], branch_len=0.25, radius=0.0056, rgb=[0.9, 0.5, 0.1]),
+    dict(name="cloth_slow_q293", obj="cloth", speed="slow", seconds=5, seed=293,
+         camera=[1.4, -0.6, 1.05, 0.45, -0.45, 0.2], rgb=[0.3, 0.7, 0.3]),
+    dict(name="rope_fast_q294", obj="rope", speed="fast", seconds=5, seed=294,
+         camera=[1.25, -1.05, 0.95, 0.45, -0.45, 0.2], length=0.81, radius=0.0045, rgb=[0.7, 0.1, 0.1]),
+    dict(name="bdlo_medium_q295", obj="bdlo", speed="medium", seconds=5, seed=295,
+         camera=[1.6, -0.05, 1.15, 0.45, -0.45, 0.15], branch_len=0.28, radius=0.0065),
+    dict(name="cloth_fast_q296", obj="cloth", speed="fast", seconds=5, seed=296,
+         camera=[1.3, 0.0, 1.2, 0.45, -0.45, 0.15], rgb=[0.5, 0.5, 0.8]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
