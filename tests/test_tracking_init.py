@@ -190,6 +190,29 @@ def test_refine_corners_finds_a_sagging_sides_corners() -> None:
     assert np.linalg.norm(c[out[1:]] - c[true[1:]], axis=1).max() < 3.0, c[out]
 
 
+def test_widest_corners_finds_the_free_corners_far_from_the_rectangles() -> None:
+    """Two held top corners; the free ones start a third of the way along the sides (where an arm's notch in the
+    top edge and a slanted side put the minimum-area rectangle's corners) and end at the true corners, which span
+    the largest quadrilateral with the held ones; refine_corners alone searches only near its start."""
+    from tracking.anchors import refine_corners, widest_corners
+
+    t = np.linspace(0.0, 1.0, 300, endpoint=False)
+    notch = 80.0 * np.clip(1.0 - np.abs(t - 0.3) / 0.15, 0.0, 1.0)  # an arm hides part of the top edge
+    top = np.stack([400.0 * t, 100.0 * t + notch], axis=1)
+    right = np.stack([400.0 - 30.0 * t, 100.0 + 300.0 * t], axis=1)
+    bottom = np.stack([370.0 - 300.0 * t, 400.0 - 100.0 * t + 40.0 * np.sin(np.pi * t)], axis=1)
+    left = np.stack([70.0 * (1 - t), 300.0 * (1 - t)], axis=1)
+    c = np.rint(np.concatenate([top, right, bottom, left]))  # clockwise on screen, whole pixels
+    true = np.array([0, 300, 600, 900])
+    start = np.array([0, 300, 700, 1000])  # free corners a third of the way along the bottom and the left side
+    fixed = np.array([True, True, False, False])
+    assert np.linalg.norm(c[refine_corners(c, start, fixed)[2:]] - c[true[2:]], axis=1).max() > 20.0
+    out = widest_corners(c, start, fixed)
+    assert (out[:2] == start[:2]).all()  # held
+    assert np.linalg.norm(c[out[2:]] - c[true[2:]], axis=1).max() < 8.0, c[out]
+    assert (widest_corners(c, start, np.array([True, False, False, False])) == start).all()  # one held: unchanged
+
+
 def test_lift_pixels_is_the_median_of_the_near_cloud_points() -> None:
     """The compiled lift against a KD-tree query and numpy's nanmedian: up to k cloud points whose pixels lie
     closer than the radius, else the nearest one (pixels far from every cloud pixel)."""

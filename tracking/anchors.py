@@ -226,6 +226,36 @@ def _polyline_length(p: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
 
 
+def widest_corners(c: np.ndarray, ci: np.ndarray, fixed: np.ndarray, samples: int = 240) -> np.ndarray:
+    """Free corners of a closed contour c (M, 2) px placed where, with the fixed ones, they span the largest
+    quadrilateral (shoelace area of the four corners in contour order).
+
+    ci: (4,) contour indices of the corners; fixed: (4,) bool, at least two True (held corners). Free corners
+    are searched among ``samples`` contour points evenly spaced by index. A quadrilateral's corners are its
+    contour's points farthest out: a hanging cloth's curved side, or an arm's notch in its top, moves the
+    minimum-area rectangle's corners along a side, away from the corner. Returns (4,) int64 contour indices
+    (ci itself with fewer than two fixed or more than two free)."""
+    ci, fixed = np.asarray(ci, np.int64), np.asarray(fixed, bool)
+    free = np.flatnonzero(~fixed)
+    if fixed.sum() < 2 or len(free) == 0 or len(free) > 2:
+        return ci
+    M = len(c)
+    cand = np.unique(np.linspace(0, M - 1, min(samples, M)).round().astype(np.int64))
+    if len(free) == 1:
+        combos = cand[:, None]
+    else:
+        a, b = np.triu_indices(len(cand), 1)
+        combos = np.stack([cand[a], cand[b]], axis=1)
+    idx = np.concatenate([np.broadcast_to(ci[fixed], (len(combos), int(fixed.sum()))), combos], axis=1)
+    idx = np.sort(idx, axis=1)  # contour order
+    P = c[idx]  # (K, 4, 2)
+    Q = np.roll(P, -1, axis=1)
+    area = 0.5 * np.abs((P[..., 0] * Q[..., 1] - Q[..., 0] * P[..., 1]).sum(axis=1))
+    out = ci.copy()
+    out[free] = combos[int(np.argmax(area))]
+    return out
+
+
 def refine_corners(
     c: np.ndarray, ci: np.ndarray, fixed: np.ndarray, inner: float = 0.2, smooth: int = 5, scale: float = 0.15,
     flat: float = 0.05,
@@ -297,11 +327,12 @@ def contour_3d(
 ) -> Contour3D | None:
     """Outer contour of a 2D object's cloud (N, 3) m split at four corners into lifted sides; None if no contour.
 
-    Corners start at the contour points nearest the minimum-area rectangle's corners, free ones then
-    move to where the contour crosses their fitted sides' bisector (``refine_corners``); a rectangle corner
+    Corners start at the contour points nearest the minimum-area rectangle's corners; a rectangle corner
     nearest a held point (``held`` (H, 3) m: TCPs of closed grippers, the cloth's held corners) is
-    replaced by the contour point nearest that point's projection. Corner 0 is the one nearest the
-    image's top-left, sides follow the contour order.
+    replaced by the contour point nearest that point's projection. With two corners held, the free ones
+    start where they span the largest quadrilateral with them (``widest_corners``). Free corners then
+    move to where the contour crosses their fitted sides' bisector (``refine_corners``). Corner 0 is the
+    one nearest the image's top-left, sides follow the contour order.
 
     robust (initialisation): a contour pixel is lifted as the median of the cloud points projected
     near it (``SIDE_LIFT_M``, ``SIDE_LIFT_K``), not the nearest one: a boundary voxel is partly
@@ -330,6 +361,7 @@ def contour_3d(
         box[k] = h_uv[r]
         fixed[k] = True
     ci = np.array([int(np.argmin(np.linalg.norm(c - b, axis=1))) for b in box])
+    ci = widest_corners(c, ci, fixed)
     if len(np.unique(ci)) < 4:
         return None
     order = np.argsort(ci)
