@@ -334,6 +334,36 @@ def test_a_held_corners_hidden_neighbours_keep_their_place_in_the_grippers_frame
     assert np.allclose(X[0], tcp[0]) and np.abs(X[~hidden, 2]).max() < 0.005  # the rest stays on the cloud
 
 
+def test_without_gripper_states_the_grippers_the_track_holds_hold_the_corners(monkeypatch) -> None:
+    """A clip with arm poses only (no gripper states): each frame's held corners are the TCPs of the grippers the
+    track holds a keypoint at (as initialisation took them), not none at all; with gripper states, the closed ones."""
+    import tracking.tracker as TR
+    from tracking.init import cloth_topology
+
+    K, T = S.default_camera(W, H)
+    a, b = np.meshgrid(np.linspace(0.0, 0.25, 6), np.linspace(0.0, 0.25, 6))
+    X0 = np.stack([a, b, np.zeros_like(a)], axis=-1).reshape(-1, 3)
+    tcp = np.stack([X0[0], X0[5] + [0.0, 0.0, 0.3]])  # the second gripper is nowhere near the cloth
+    tr = Tracker(P, K, T)
+    tr.resume(cloth_topology(X0, 6, 6), X0, np.array([0, -1]))
+    seen: list[np.ndarray | None] = []
+    real = TR.detect_anchors
+
+    def spy(kind, cloud, K_, T_, params, held=None):
+        seen.append(None if held is None else np.array(held))
+        return real(kind, cloud, K_, T_, params, held)
+
+    monkeypatch.setattr(TR, "detect_anchors", spy)
+    u, v = np.meshgrid(np.linspace(0.0, 0.25, 60), np.linspace(0.0, 0.25, 60))
+    sheet = np.stack([u.ravel(), v.ravel(), np.zeros(u.size)], axis=1)
+    tr.step(sheet, tcp=tcp)
+    assert seen[-1] is not None and np.allclose(seen[-1], tcp[:1])
+    tr.step(sheet, tcp=tcp, gripper_closed=np.array([True, True]))
+    assert np.allclose(seen[-1], tcp)
+    tr.step(sheet)
+    assert seen[-1] is None
+
+
 @pytest.mark.parametrize("sweeps", [0, 10])
 def test_a_cloths_hidden_part_keeps_its_edge_lengths(sweeps: int) -> None:
     """A cloth whose last two columns are out of sight, pulled towards the seen part by a soft anchor (a corner

@@ -525,9 +525,7 @@ class Tracker:
         p = self.params
         na = len(self.topology.anchor_idx)
         t0 = time.perf_counter()
-        held = None
-        if tcp is not None and gripper_closed is not None:
-            held = np.asarray(tcp, np.float64).reshape(-1, 3)[np.asarray(gripper_closed, bool)]
+        held = self._held_tcps(tcp, gripper_closed)
         det, kinds = detect_anchors(self.topology.kind, cloud, self.K, self.T, p, held)
         t1 = time.perf_counter()
         pred = self.keypoints if self._velocity is None else self.keypoints + self._velocity
@@ -683,6 +681,20 @@ class Tracker:
             if bad2 < best[2] and abs2 <= abs_best:
                 best, abs_best = (X2, m2, bad2, True), abs2
         return best
+
+    def _held_tcps(self, tcp: np.ndarray | None, gripper_closed: np.ndarray | None) -> np.ndarray | None:
+        """(H, 3) m: the TCPs of the grippers holding the object this frame (a cloth's held corners), or None
+        without TCPs. The closed grippers' (gripper_closed (G,) bool); without gripper states (a recorded clip
+        with arm poses only) those the track holds a keypoint at (its grasp indices): at initialisation every
+        TCP near an end or a corner was taken as holding it, so the frames after it keep to the same grasp."""
+        if tcp is None:
+            return None
+        tcp = np.asarray(tcp, np.float64).reshape(-1, 3)
+        if gripper_closed is not None:
+            return tcp[np.asarray(gripper_closed, bool)]
+        if len(self.grasp_idx) != len(tcp):
+            return None
+        return tcp[self.grasp_idx >= 0]
 
     def _begin_step(
         self, cloud: np.ndarray, tcp: np.ndarray | None, gripper_closed: np.ndarray | None
