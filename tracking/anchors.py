@@ -226,15 +226,24 @@ def _polyline_length(p: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
 
 
-def widest_corners(c: np.ndarray, ci: np.ndarray, fixed: np.ndarray, samples: int = 240) -> np.ndarray:
+def _quad_areas(c: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Areas (K,) of the quadrilaterals whose corners are the contour c (M, 2) points idx (K, 4), taken in
+    contour order (shoelace)."""
+    P = c[np.sort(idx, axis=1)]
+    Q = np.roll(P, -1, axis=1)
+    return 0.5 * np.abs((P[..., 0] * Q[..., 1] - Q[..., 0] * P[..., 1]).sum(axis=1))
+
+
+def widest_corners(c: np.ndarray, ci: np.ndarray, fixed: np.ndarray, samples: int = 96) -> np.ndarray:
     """Free corners of a closed contour c (M, 2) px placed where, with the fixed ones, they span the largest
     quadrilateral (shoelace area of the four corners in contour order).
 
     ci: (4,) contour indices of the corners; fixed: (4,) bool, at least two True (held corners). Free corners
-    are searched among ``samples`` contour points evenly spaced by index. A quadrilateral's corners are its
-    contour's points farthest out: a hanging cloth's curved side, or an arm's notch in its top, moves the
-    minimum-area rectangle's corners along a side, away from the corner. Returns (4,) int64 contour indices
-    (ci itself with fewer than two fixed or more than two free)."""
+    are searched among ``samples`` contour points evenly spaced by index, then each in turn among the contour
+    points between its neighbouring samples. A quadrilateral's corners are its contour's points farthest out: a
+    hanging cloth's curved side, or an arm's notch in its top, moves the minimum-area rectangle's corners along a
+    side, away from the corner. Returns (4,) int64 contour indices (ci itself with fewer than two fixed or more
+    than two free)."""
     ci, fixed = np.asarray(ci, np.int64), np.asarray(fixed, bool)
     free = np.flatnonzero(~fixed)
     if fixed.sum() < 2 or len(free) == 0 or len(free) > 2:
@@ -247,12 +256,15 @@ def widest_corners(c: np.ndarray, ci: np.ndarray, fixed: np.ndarray, samples: in
         a, b = np.triu_indices(len(cand), 1)
         combos = np.stack([cand[a], cand[b]], axis=1)
     idx = np.concatenate([np.broadcast_to(ci[fixed], (len(combos), int(fixed.sum()))), combos], axis=1)
-    idx = np.sort(idx, axis=1)  # contour order
-    P = c[idx]  # (K, 4, 2)
-    Q = np.roll(P, -1, axis=1)
-    area = 0.5 * np.abs((P[..., 0] * Q[..., 1] - Q[..., 0] * P[..., 1]).sum(axis=1))
     out = ci.copy()
-    out[free] = combos[int(np.argmax(area))]
+    out[free] = combos[int(np.argmax(_quad_areas(c, idx)))]
+    step = int(np.ceil(M / len(cand)))
+    for _ in range(2):  # each free corner in turn at full resolution, the others held
+        for k in free:
+            near = (out[k] + np.arange(-step, step + 1)) % M
+            trial = np.repeat(out[None], len(near), axis=0)
+            trial[:, k] = near
+            out[k] = near[int(np.argmax(_quad_areas(c, trial)))]
     return out
 
 
