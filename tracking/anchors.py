@@ -242,11 +242,11 @@ def widest_corners(c: np.ndarray, ci: np.ndarray, fixed: np.ndarray, samples: in
     are searched among ``samples`` contour points evenly spaced by index, then each in turn among the contour
     points between its neighbouring samples. A quadrilateral's corners are its contour's points farthest out: a
     hanging cloth's curved side, or an arm's notch in its top, moves the minimum-area rectangle's corners along a
-    side, away from the corner. Returns (4,) int64 contour indices (ci itself with fewer than two fixed or more
-    than two free)."""
+    side, away from the corner. Returns (4,) int64 contour indices (ci itself with fewer than two fixed or none
+    free)."""
     ci, fixed = np.asarray(ci, np.int64), np.asarray(fixed, bool)
     free = np.flatnonzero(~fixed)
-    if fixed.sum() < 2 or len(free) == 0 or len(free) > 2:
+    if fixed.sum() < 2 or len(free) == 0:  # of four corners, at most two free
         return ci
     M = len(c)
     cand = np.unique(np.linspace(0, M - 1, min(samples, M)).round().astype(np.int64))
