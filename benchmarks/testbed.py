@@ -366,6 +366,19 @@ VARIANTS: list[dict[str, Any]] = [
          camera=[1.6, -0.05, 1.15, 0.45, -0.45, 0.15], branch_len=0.28, radius=0.0065),
     dict(name="cloth_fast_q296", obj="cloth", speed="fast", seconds=5, seed=296,
          camera=[1.3, 0.0, 1.2, 0.45, -0.45, 0.15], rgb=[0.5, 0.5, 0.8]),
+    # generated at the start of session 36, at camera poses no other row uses, and scored before any change
+    dict(name="rope_slow_j301", obj="rope", speed="slow", seconds=5, seed=301,
+         camera=[1.2, -0.55, 1.4, 0.45, -0.45, 0.15], length=0.89, radius=0.0061, rgb=[0.6, 0.4, 0.9]),
+    dict(name="bdlo_fast_j302", obj="bdlo", speed="fast", seconds=5, seed=302,
+         camera=[1.4, -0.9, 1.15, 0.45, -0.45, 0.15], branch_len=0.22, radius=0.0059, rgb=[0.2, 0.5, 0.9]),
+    dict(name="cloth_medium_j303", obj="cloth", speed="medium", seconds=5, seed=303,
+         camera=[1.05, -0.6, 1.3, 0.45, -0.45, 0.15], rgb=[0.8, 0.6, 0.4]),
+    dict(name="rope_medium_j304", obj="rope", speed="medium", seconds=5, seed=304,
+         camera=[1.65, -0.3, 1.15, 0.45, -0.45, 0.15], length=0.83, radius=0.0049, rgb=[0.9, 0.6, 0.6]),
+    dict(name="bdlo_slow_j305", obj="bdlo", speed="slow", seconds=5, seed=305,
+         camera=[1.3, 0.15, 1.05, 0.45, -0.45, 0.2], branch_len=0.3, radius=0.0054, rgb=[0.4, 0.4, 0.9]),
+    dict(name="cloth_slow_j306", obj="cloth", speed="slow", seconds=5, seed=306,
+         camera=[1.5, -0.45, 1.35, 0.45, -0.45, 0.15], rgb=[0.9, 0.3, 0.6]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
