@@ -727,3 +727,28 @@ def test_in_open_space_only_where_the_depth_sees_past_a_point() -> None:
         [5.0, 0.0, 0.5],  # outside the image
     ])
     assert in_open_space(pts, depth, K, np.eye(4), margin_m=0.02).tolist() == [True, False, False, False, False]
+
+
+def test_behind_nearest_occluder_moves_a_point_the_camera_would_see_behind_the_arm_beside_it() -> None:
+    from tracking.geometry import behind_nearest_occluder, in_open_space, pixels_of
+
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    depth = np.ones((480, 640))  # a table 1 m in front of a camera at the origin looking along +z
+    arm = np.zeros((480, 640), bool)
+    arm[:, 340:360] = True  # a finger 0.5 m from the camera, columns 340-359
+    arm[100:120, 130:135] = True  # another finger, 0.5 m from the camera
+    depth[arm] = 0.5
+    depth[100:120, 100:120] = 0.8  # something the cloud left out, at 0.8 m, beside it
+    pts = np.array([
+        [0.030, 0.0, 0.8],  # open space at column 338, 2 px left of the finger: behind it
+        [0.100, 0.0, 0.8],  # column 382, 22 px (26 mm at 0.8 m) right of it: beyond a 20 mm reach, stays
+        [0.052, 0.0, 0.4],  # in front of the finger (on an arm pixel): the camera sees it there, stays
+        [-0.312, -0.208, 0.8],  # column 125, 5 px from the other finger, 6 px from a surface at its own depth
+        [0.030, 0.0, 1.5],  # behind the table: not in open space, stays
+    ])
+    X, moved = behind_nearest_occluder(pts, depth, K, np.eye(4), arm, reach_m=0.02, margin_m=0.02)
+    assert moved.tolist() == [True, False, False, False, False]
+    np.testing.assert_array_equal(X[~moved], pts[~moved])
+    r, c, inside, z = pixels_of(X[:1], K, np.eye(4), depth.shape)
+    assert inside[0] and c[0] == 340 and z[0] == pytest.approx(0.8)  # the finger's nearest pixel, same depth
+    assert not in_open_space(X[:1], depth, K, np.eye(4), 0.02)[0]

@@ -225,6 +225,37 @@ def test_hidden_keypoints_move_with_the_hand_and_do_not_fail_the_frame() -> None
 
 
 
+def test_a_rope_keypoint_left_without_cloud_goes_where_behind_arm_puts_it() -> None:
+    """After the solve, the 1D keypoints (not held) with no cloud within ``hidden_reach`` of the median rest length
+    are handed to behind_arm, which moves the ones the camera would see (``geometry.behind_nearest_occluder``)."""
+    K, T = S.default_camera(W, H)
+    topo, X0 = _straight_rope()
+    xs = np.linspace(0.1, 0.2, 300)
+    cloud = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)  # keypoints 1-4 have no cloud
+    asked: list[np.ndarray] = []
+
+    def behind_arm(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        asked.append(points.copy())
+        moved = points[:, 0] > 0.05  # say the camera sees those there
+        return points + moved[:, None] * np.array([0.0, 0.05, 0.0]), moved
+
+    tr = Tracker(P, K, T)
+    tr.resume(topo, X0, np.array([0]))
+    plain = Tracker(P, K, T)
+    plain.resume(topo, X0, np.array([0]))
+    X = tr.step(cloud, tcp=X0[:1], behind_arm=behind_arm).keypoints
+    Xp = plain.step(cloud, tcp=X0[:1]).keypoints
+    off = np.flatnonzero(np.linalg.norm(Xp[:, None] - cloud[None], axis=-1).min(axis=1) > P.hidden_reach * 0.02)
+    off = off[off != 0]  # not the held one
+    assert len(off) >= 3 and len(asked) == 1
+    np.testing.assert_array_equal(asked[0], Xp[off])
+    moved = off[Xp[off, 0] > 0.05]
+    assert len(moved) >= 1
+    np.testing.assert_allclose(X[moved, 1] - Xp[moved, 1], 0.05)
+    np.testing.assert_array_equal(np.delete(X, moved, axis=0), np.delete(Xp, moved, axis=0))
+    np.testing.assert_array_equal(tr.keypoints, X)  # the next frame starts there
+
+
 def test_a_rope_gone_from_sight_is_carried_by_the_hands() -> None:
     """A frame with too little cloud to track (the rope behind an arm) moves the keypoints with the hands that hold
     it, as a bad frame: held ends at their TCPs, the rest with them, at its rest lengths (frozen, the ends would

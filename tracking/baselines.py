@@ -94,10 +94,11 @@ class BaselineTracker(Tracker):
 
     def step(self, cloud: np.ndarray, tcp: np.ndarray | None = None, gripper_closed: np.ndarray | None = None,
              hidden: np.ndarray | None = None, tcp_rot: np.ndarray | None = None,
-             open_space: Callable[[np.ndarray], np.ndarray] | None = None) -> FrameResult:
+             open_space: Callable[[np.ndarray], np.ndarray] | None = None,
+             behind_arm: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None) -> FrameResult:
         """One frame's segmented cloud (M, 3) m -> the baseline's keypoints, scored like the full method (the
         keypoints hidden behind the arm, hidden (N,) bool, the grippers' orientations tcp_rot (G, 3, 3) and the
-        frame's open-space test are the full method's concern: a baseline reads none of them)."""
+        frame's open-space tests are the full method's concern: a baseline reads none of them)."""
         early = self._begin_step(cloud, tcp, gripper_closed)
         if early is not None:
             return early

@@ -152,6 +152,51 @@ def occluder_within(
     return (ok & (dd > 0) & (dd < (z - margin_m)[:, None])).any(axis=1)
 
 
+
+def behind_nearest_occluder(
+    points: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, mask: np.ndarray,
+    reach_m: float, margin_m: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points (N, 3) m world left in the open space the camera sees through (``in_open_space``; depth (h, w) m,
+    0 = no reading; K (3, 3) at T_world_cam (4, 4)) moved across the image, at their own depth, onto the nearest
+    pixel of mask (h, w) bool (the arm) within reach_m, measured at that depth, whose surface lies more than
+    margin_m in front of them: the camera would see them where they are, so they lie behind the nearest thing
+    that hides them. Left where they are: a point on a mask pixel (in front of the arm), one with a surface at its
+    own depth (within margin_m) within margin_m of it across the image (something the cloud left out is there),
+    and one with no such mask pixel within reach. Returns the points (N, 3) m and which were moved (N,) bool."""
+    X = np.array(points, np.float64).reshape(-1, 3)
+    moved = np.zeros(len(X), bool)
+    free = np.flatnonzero(in_open_space(X, depth, K, T_world_cam, margin_m))
+    r, c, _, z = pixels_of(X[free], K, T_world_cam, depth.shape)
+    keep = ~mask[r, c]
+    free, r, c, z = free[keep], r[keep], c[keep], z[keep]
+    if not len(free):
+        return X, moved
+    h, w = depth.shape
+    rad = float(K[0, 0]) * reach_m / np.maximum(z, 1e-6)  # (n,) px
+    near = float(K[0, 0]) * margin_m / np.maximum(z, 1e-6)
+    k = min(int(np.ceil(max(rad.max(), near.max()))), max(h, w))
+    off = np.arange(-k, k + 1)
+    dr, dc = np.meshgrid(off, off, indexing="ij")
+    d2 = (dr * dr + dc * dc).ravel().astype(np.float64)
+    rr, cc = r[:, None] + dr.ravel()[None, :], c[:, None] + dc.ravel()[None, :]  # (n, W)
+    inside = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
+    rr, cc = np.clip(rr, 0, h - 1), np.clip(cc, 0, w - 1)
+    dd = depth[rr, cc]
+    there = (inside & (d2 <= (near * near)[:, None]) & (dd > 0) & (np.abs(dd - z[:, None]) < margin_m)).any(axis=1)
+    ok = inside & (d2 <= (rad * rad)[:, None]) & mask[rr, cc] & (dd > 0) & (dd < (z - margin_m)[:, None])
+    ok &= ~there[:, None]
+    i = np.flatnonzero(ok.any(axis=1))
+    if not len(i):
+        return X, moved
+    best = np.argmin(np.where(ok[i], d2[None, :], np.inf), axis=1)
+    u, v, zc = cc[i, best] + 0.5, rr[i, best] + 0.5, z[i]  # the pixel's centre
+    pc = np.stack([(u - K[0, 2]) * zc / K[0, 0], (v - K[1, 2]) * zc / K[1, 1], zc], axis=1)
+    X[free[i]] = pc @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+    moved[free[i]] = True
+    return X, moved
+
+
 def decimation_stride(K: np.ndarray, pixel_m: float) -> int:
     """Stride s >= 1 (px) so that every s-th pixel of a camera with matrix K (3, 3) spans about
     ``pixel_m`` metres at 1 m depth (s = round(fx * pixel_m)); 1 when pixel_m <= 0."""

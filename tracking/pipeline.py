@@ -21,6 +21,7 @@ from scipy.spatial import cKDTree
 from tdcommon.meshes import OutwardCache
 from tracking.classify import classify_object
 from tracking.geometry import (
+    behind_nearest_occluder,
     decimated_intrinsics,
     decimation_stride,
     edge_samples,
@@ -510,8 +511,13 @@ class LivePipeline:
         if topo.kind == "2d":  # where a hidden cloth keypoint, which the camera would see there, cannot be moved
             open_space = partial(in_open_space, depth=depth, K=self.K_seg, T_world_cam=self.T,
                                  margin_m=self.params.arm_margin_m)
+        behind_arm = None
+        if topo.kind == "1d" and arm is not None:  # where a rope keypoint the camera would see cannot stay
+            behind_arm = partial(behind_nearest_occluder, depth=depth, K=self.K_seg, T_world_cam=self.T, mask=arm,
+                                 reach_m=self.params.hidden_reach * float(np.median(topo.rest)),
+                                 margin_m=self.params.arm_margin_m)
         res = self.tracker.step(seg.points, tcp=tcp, gripper_closed=closed, hidden=hidden, tcp_rot=tcp_rot,
-                                open_space=open_space)
+                                open_space=open_space, behind_arm=behind_arm)
         self._timings.update(self.tracker.last_timings_ms)
         p = self.params
         n = (p.background_confirm_2d if topo.kind == "2d" else p.background_confirm_1d) - 1

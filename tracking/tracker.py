@@ -501,6 +501,7 @@ class Tracker:
         self, cloud: np.ndarray, tcp: np.ndarray | None = None, gripper_closed: np.ndarray | None = None,
         hidden: np.ndarray | None = None, tcp_rot: np.ndarray | None = None,
         open_space: Callable[[np.ndarray], np.ndarray] | None = None,
+        behind_arm: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
     ) -> FrameResult:
         """Track one frame's segmented cloud (M, 3) m; tcp (G, 3) m and gripper_closed (G,) bool are optional,
         as are the grippers' orientations tcp_rot (G, 3, 3) (TCP frame to world).
@@ -513,7 +514,9 @@ class Tracker:
         keypoints are (the robot places those). With tcp_rot, a hidden keypoint within ``params.exit_keypoints``
         (a cloth's: ``exit_keypoints_2d``) edges of a held one is also drawn towards where it was last seen in that
         gripper's frame (``params.exit_stiffness``). open_space: the frame's test of where the camera sees through
-        (``track_frame``), which a hidden keypoint is never moved into after the solve.
+        (``track_frame``), which a hidden keypoint is never moved into after the solve. behind_arm: the frame's
+        ``geometry.behind_nearest_occluder`` (points (K, 3) m -> points, moved (K,) bool): a 1D keypoint the solve
+        left with no cloud within ``params.hidden_reach`` and in open space goes behind the arm beside it.
 
         Grasp indices follow the grippers (regrasp on closing). After ``lost_after_frames`` bad frames
         the status is LOST and the tracker resets: the caller must initialise again.
@@ -554,6 +557,8 @@ class Tracker:
             X, matched, tangled, repaired = self._untangle(X, matched, cloud, det, kinds, tcp, held)
         elif self.topology.kind == "1d":
             X, matched, tangled, repaired = self._unfold(X, matched, cloud, det, kinds, tcp, hidden, soft, recapture)
+        if behind_arm is not None and self.topology.kind == "1d" and len(cloud):
+            X = self._behind_arm(X, cloud, behind_arm)
         if rot is not None and tcp_now is not None:
             for g, k, j in exits:  # learnt where seen
                 if hidden is None or not hidden[j]:
@@ -564,6 +569,26 @@ class Tracker:
         res = self._result(X, cloud, matched, na, tangled=tangled, repaired=repaired, hidden=hidden)
         self.last_timings_ms = {"anchors": 1e3 * (t1 - t0), "solve": 1e3 * (time.perf_counter() - t1)}
         return res
+
+    def _behind_arm(
+        self, X: np.ndarray, cloud: np.ndarray, behind_arm: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+    ) -> np.ndarray:
+        """A 1D solution X (N, 3) m whose keypoints (not held) with no point of the cloud (M, 3) m within
+        ``params.hidden_reach`` of the median edge rest length and where the camera sees through them are moved
+        behind the arm beside them (behind_arm, ``Tracker.step``): the solve put them on a chord across the open
+        space where the rope passes under a finger (rope_above_fast_s61), which the camera would have seen."""
+        assert self.topology is not None
+        d, _ = nearest(np.ascontiguousarray(X, np.float64), np.ascontiguousarray(cloud, np.float64))
+        off = d > self.params.hidden_reach * float(np.median(self.topology.rest))
+        off[self.grasp_idx[self.grasp_idx >= 0]] = False
+        if not off.any():
+            return X
+        Xo, moved = behind_arm(X[off])
+        if not moved.any():
+            return X
+        X = X.copy()
+        X[np.flatnonzero(off)[moved]] = Xo[moved]
+        return X
 
     def _grow(self, X: np.ndarray, det: np.ndarray, m: np.ndarray) -> None:
         """Lengthen a 1D chain whose free tip (not held) was re-detected farther from the chain's other node (in
