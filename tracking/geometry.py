@@ -152,7 +152,6 @@ def occluder_within(
     return (ok & (dd > 0) & (dd < (z - margin_m)[:, None])).any(axis=1)
 
 
-
 def behind_nearest_occluder(
     points: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, mask: np.ndarray,
     reach_m: float, margin_m: float,
@@ -168,32 +167,26 @@ def behind_nearest_occluder(
     moved = np.zeros(len(X), bool)
     free = np.flatnonzero(in_open_space(X, depth, K, T_world_cam, margin_m))
     r, c, _, z = pixels_of(X[free], K, T_world_cam, depth.shape)
-    keep = ~mask[r, c]
-    free, r, c, z = free[keep], r[keep], c[keep], z[keep]
-    if not len(free):
-        return X, moved
     h, w = depth.shape
-    rad = float(K[0, 0]) * reach_m / np.maximum(z, 1e-6)  # (n,) px
-    near = float(K[0, 0]) * margin_m / np.maximum(z, 1e-6)
-    k = min(int(np.ceil(max(rad.max(), near.max()))), max(h, w))
-    off = np.arange(-k, k + 1)
-    dr, dc = np.meshgrid(off, off, indexing="ij")
-    d2 = (dr * dr + dc * dc).ravel().astype(np.float64)
-    rr, cc = r[:, None] + dr.ravel()[None, :], c[:, None] + dc.ravel()[None, :]  # (n, W)
-    inside = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
-    rr, cc = np.clip(rr, 0, h - 1), np.clip(cc, 0, w - 1)
-    dd = depth[rr, cc]
-    there = (inside & (d2 <= (near * near)[:, None]) & (dd > 0) & (np.abs(dd - z[:, None]) < margin_m)).any(axis=1)
-    ok = inside & (d2 <= (rad * rad)[:, None]) & mask[rr, cc] & (dd > 0) & (dd < (z - margin_m)[:, None])
-    ok &= ~there[:, None]
-    i = np.flatnonzero(ok.any(axis=1))
-    if not len(i):
-        return X, moved
-    best = np.argmin(np.where(ok[i], d2[None, :], np.inf), axis=1)
-    u, v, zc = cc[i, best] + 0.5, rr[i, best] + 0.5, z[i]  # the pixel's centre
-    pc = np.stack([(u - K[0, 2]) * zc / K[0, 0], (v - K[1, 2]) * zc / K[1, 1], zc], axis=1)
-    X[free[i]] = pc @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
-    moved[free[i]] = True
+    for j, rj, cj, zj in zip(free.tolist(), r.tolist(), c.tolist(), z.tolist(), strict=True):
+        if mask[rj, cj]:
+            continue
+        rad, near = float(K[0, 0]) * reach_m / zj, float(K[0, 0]) * margin_m / zj  # px
+        k = int(np.ceil(max(rad, near)))
+        r0, r1, c0, c1 = max(rj - k, 0), min(rj + k + 1, h), max(cj - k, 0), min(cj + k + 1, w)
+        dr, dc = np.ogrid[r0 - rj:r1 - rj, c0 - cj:c1 - cj]
+        d2 = dr * dr + dc * dc  # (window) px^2
+        dd = depth[r0:r1, c0:c1]
+        if ((d2 <= near * near) & (dd > 0) & (np.abs(dd - zj) < margin_m)).any():
+            continue
+        ok = (d2 <= rad * rad) & mask[r0:r1, c0:c1] & (dd > 0) & (dd < zj - margin_m)
+        if not ok.any():
+            continue
+        br, bc = np.unravel_index(np.argmin(np.where(ok, d2, np.inf)), ok.shape)
+        u, v = c0 + bc + 0.5, r0 + br + 0.5  # the pixel's centre
+        pc = np.array([(u - K[0, 2]) * zj / K[0, 0], (v - K[1, 2]) * zj / K[1, 1], zj])
+        X[j] = T_world_cam[:3, :3] @ pc + T_world_cam[:3, 3]
+        moved[j] = True
     return X, moved
 
 
