@@ -539,20 +539,21 @@ def test_track_frame_reports_the_anchors_it_kept() -> None:
     assert used.sum() == 1
 
 
-def test_a_kept_tip_is_not_recaptured_by_a_detection_on_the_rope() -> None:
-    """A 1D tip kept the frame before is matched within the wider gate only by a detection off the rest of the rope
-    (a tip whipping ahead of its prediction), not by one lying on it (a spur of the skeleton, a part seen short)."""
+def test_a_tip_is_not_recaptured_by_a_detection_on_the_rope() -> None:
+    """A 1D tip is matched within the wider gate only by a detection off the rest of the rope (a tip whipping ahead
+    of its prediction), not by one lying on it (a spur of the skeleton, a part seen short), between its keypoints
+    as well as beside one."""
     from tracking.tracker import regate_on_object
 
     topo, X0 = _straight_rope()  # 11 keypoints 2 cm apart along x, anchors 0 and 10
-    det = np.array([[0.10, 0.003, 0.0], [-0.08, 0.0, 0.0], [0.01, 0.0, 0.0]])
-    kept = np.array([True, False])
-    on_rope = regate_on_object(topo, X0, det, np.array([0, -1]), kept, P)  # 10 cm off, beside keypoint 5
-    beyond = regate_on_object(topo, X0, det, np.array([1, -1]), kept, P)  # 8 cm beyond the tip
-    near = regate_on_object(topo, X0, det, np.array([2, -1]), kept, P)  # within the gate: a plain match
-    assert on_rope.tolist() == [True, False]
+    det = np.array([[0.10, 0.003, 0.0], [-0.08, 0.0, 0.0], [0.01, 0.0, 0.0], [0.11, 0.008, 0.0]])
+    on_rope = regate_on_object(topo, X0, det, np.array([0, -1]), P)  # 10 cm off, beside keypoint 5
+    between = regate_on_object(topo, X0, det, np.array([3, -1]), P)  # 13 mm from keypoints 5 and 6, 8 from the rope
+    beyond = regate_on_object(topo, X0, det, np.array([1, -1]), P)  # 8 cm beyond the tip
+    near = regate_on_object(topo, X0, det, np.array([2, -1]), P)  # within the gate: a plain match
+    assert np.linalg.norm(det[3] - X0, axis=1).min() > P.anchor_regate_clear * 0.02  # no keypoint is that near
+    assert on_rope.tolist() == [True, False] and between.tolist() == [True, False]
     assert not beyond.any() and not near.any()
-    assert not regate_on_object(topo, X0, det, np.array([0, -1]), ~kept, P).any()  # not kept: recaptured
 
 
 def test_cloudless_keypoints_are_those_whose_nearest_cloud_is_another_part() -> None:

@@ -176,23 +176,37 @@ def consistent_anchors(
 
 
 def regate_on_object(
-    topology: Topology, X_pred: np.ndarray, det: np.ndarray, m: np.ndarray, ask: np.ndarray, params: TrackingParams,
+    topology: Topology, X_pred: np.ndarray, det: np.ndarray, m: np.ndarray, params: TrackingParams,
 ) -> np.ndarray:
-    """(A,) bool: which anchors picked by ask (A,) bool were matched (m (A,) into det (D, 3) m) beyond
-    ``anchor_gate_m`` of their prediction (X_pred (N, 3) m) to a detection within ``anchor_regate_clear`` median rest
-    lengths of another predicted keypoint, not the anchor's neighbour: on the object (a spur of its skeleton, the
-    end of a part seen short), so not that anchor."""
+    """(A,) bool: which anchors were matched (m (A,) into det (D, 3) m) beyond ``anchor_gate_m`` of their
+    prediction (X_pred (N, 3) m) to a detection within ``anchor_regate_clear`` median rest lengths of an edge of
+    the predicted object that neither the anchor nor a neighbour of it ends: on the object (a spur of its skeleton,
+    the end of a part seen short, where a branch hanging to the table seems to end when its lying part is lost in
+    the table's noise), so not that anchor. A detection beyond the anchor's own edge (a tip whipping ahead of its
+    prediction, a tip seen short before) is left matched."""
     out = np.zeros(len(m), bool)
     ai = topology.anchor_idx
-    far = ask & (m >= 0)
+    far = m >= 0
     if not far.any() or len(X_pred) < 2:
         return out
     far[far] = np.linalg.norm(det[m[far]] - X_pred[ai[far]], axis=1) > params.anchor_gate_m
     a = np.flatnonzero(far)
-    d = np.linalg.norm(X_pred[None, :, :] - det[m[a]][:, None, :], axis=2)  # (F, N)
-    d[adjacency(topology.edges, len(X_pred), self_loops=True)[ai[a]]] = np.inf  # the anchor and its neighbours
+    if not len(a):
+        return out
+    e = np.asarray(topology.edges, np.int64)
+    mine = adjacency(e, len(X_pred), self_loops=True)[ai[a]]  # (F, N) the anchor and its neighbours
+    d = segment_distances(det[m[a]], X_pred[e[:, 0]], X_pred[e[:, 1]])  # (F, E)
+    d[mine[:, e[:, 0]] | mine[:, e[:, 1]]] = np.inf
     out[a] = d.min(axis=1) < params.anchor_regate_clear * float(np.median(topology.rest))
     return out
+
+
+def segment_distances(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(P, S) m: the distance of each point p (P, 3) m to each segment from a (S, 3) to b (S, 3) m."""
+    ab = b - a
+    t = np.einsum("psk,sk->ps", p[:, None, :] - a[None], ab) / np.maximum(np.einsum("sk,sk->s", ab, ab), 1e-18)
+    q = a[None] + np.clip(t, 0.0, 1.0)[..., None] * ab[None]
+    return np.linalg.norm(p[:, None, :] - q, axis=2)
 
 
 def cloudless(topology: Topology, X: np.ndarray, cloud: np.ndarray | cKDTree, reach_m: float) -> np.ndarray:
@@ -273,8 +287,8 @@ def track_frame(
     open_space: points (K, 3) m -> (K,) bool, where the frame's depth sees through (``geometry.in_open_space``); a
     cloth's hidden keypoint that the relaxation after the solve would put there stays where the solve put it.
     recapture: (A,) bool the anchors not re-detected and kept the frame before: a cloth's others are not matched
-    within ``anchor_regate_m`` (``match_anchors``), a 1D object's others only by a detection off the object
-    (``regate_on_object``).
+    within ``anchor_regate_m`` (``match_anchors``); a 1D object's anchors are matched there only by a detection off
+    the rest of the object (``regate_on_object``).
     Returns the keypoints, the anchors matched and kept (``FrameSolve``).
     """
     ai = topology.anchor_idx
@@ -289,8 +303,8 @@ def track_frame(
         params.anchor_regate_m,
         recapture if topology.kind == "2d" else None,
     )
-    if topology.kind == "1d" and recapture is not None:
-        m[regate_on_object(topology, Xm, det_pos, m, ~np.asarray(recapture, bool), params)] = -1
+    if topology.kind == "1d":
+        m[regate_on_object(topology, Xm, det_pos, m, params)] = -1
     idx = [ai[m >= 0]]
     pos = [det_pos[m[m >= 0]]]
     kinds = topology.anchor_kind[m >= 0]
