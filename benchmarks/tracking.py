@@ -66,13 +66,14 @@ class SimFrame:
     """One simulated frame as the tracking worker sees it.
 
     depth: (H, W) uint16 mm (0 = none); state: the ``arms/state`` message at the frame time (joints,
-    gripper width, grasped flags); gt: the simulator's ground truth; t: sim time, s.
+    gripper width, grasped flags); gt: the simulator's ground truth; t: sim time, s; color: (H, W, 3) uint8 RGB.
     """
 
     depth: np.ndarray
     state: dict[str, Any]
     gt: GroundTruth
     t: float
+    color: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -149,7 +150,7 @@ def simulate(
             frame = station.camera.read(timeout=2.0)
             last = frame.frame_number
             assert frame.ground_truth is not None and frame.frame_number == k, (frame.frame_number, k)
-            frames.append(SimFrame(frame.depth, msg, frame.ground_truth, frame.device_stamp))
+            frames.append(SimFrame(frame.depth, msg, frame.ground_truth, frame.device_stamp, frame.color))
         K = station.camera.intrinsics.K
         return SimSequence(frames, K, station.T_world_cam, station.bases, obj, settle_s)
     finally:
@@ -200,7 +201,7 @@ def run_pipeline(
     for f, (V, F, tcp, closed, rot) in zip(seq.frames, arm_inputs, strict=True):
         depth = f.depth.astype(np.float32) * np.float32(1e-3)
         c0, w0 = time.process_time(), time.perf_counter()
-        out = pipe.process(depth, V, F, tcp, closed, tcp_rot=rot)
+        out = pipe.process(depth, V, F, tcp, closed, tcp_rot=rot, colour=f.color)
         wall.append(1e3 * (time.perf_counter() - w0))
         cpu.append(1e3 * (time.process_time() - c0))
         outs.append(out)

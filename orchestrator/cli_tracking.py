@@ -147,7 +147,7 @@ class _Pending(NamedTuple):
     """A frame the forward pass left without keypoints, as compact as exact: the decimated depth in its
     recorded units (uint16, converted as ``depth_m`` converts the full image, so the float32 values are the
     ones the forward pass used), its arm mask bit-packed, the TCPs (G, 3) m, closed flags (G,) bool and TCP
-    orientations (G, 3, 3)."""
+    orientations (G, 3, 3), and the decimated colour (h, w, 3) uint8 (None without)."""
 
     depth: np.ndarray
     scale: float
@@ -156,13 +156,14 @@ class _Pending(NamedTuple):
     tcp: np.ndarray | None
     closed: np.ndarray | None
     tcp_rot: np.ndarray | None
+    colour: np.ndarray | None = None
 
     @staticmethod
     def keep(prepared: Any, depth: np.ndarray, scale: float, stride: int, tcp: np.ndarray | None,
              closed: np.ndarray | None, tcp_rot: np.ndarray | None) -> _Pending:
         arm = None if prepared.arm is None else np.packbits(prepared.arm, axis=None)
         dec = np.ascontiguousarray(depth[::stride, ::stride])
-        p = _Pending(dec, scale, arm, prepared.depth.shape, tcp, closed, tcp_rot)
+        p = _Pending(dec, scale, arm, prepared.depth.shape, tcp, closed, tcp_rot, prepared.colour)
         if dec.dtype.kind not in "ui" or dec.shape != p.shape or not np.array_equal(p.prepared().depth,
                                                                                   prepared.depth):
             p = p._replace(depth=prepared.depth.copy(), scale=1.0)  # not so exact: keep the float32 image
@@ -179,7 +180,7 @@ class _Pending(NamedTuple):
         if self.arm_bits is not None:
             n = self.shape[0] * self.shape[1]
             arm = np.unpackbits(self.arm_bits, count=n).astype(bool).reshape(self.shape)
-        return PreparedFrame(depth, arm)
+        return PreparedFrame(depth, arm, self.colour)
 
 
 
@@ -259,17 +260,17 @@ def track_sequence(
     topology = None
     last = np.zeros((0, 3))  # the last frame's keypoints in the clip's numbering
     t_start = time.monotonic()
-    for i, frame in enumerate(iter_depth(seq.frames)):  # depth only: tracking reads no colour
+    for i, frame in enumerate(iter_depth(seq.frames)):  # depth, and colour where the reader has it
         V, F, tcp, closed, rot = _arm_geometry(seq, i, arms)
         full = None if pipe.state == "tracking" else frame.depth_m()  # only initialising needs the whole image
         t0 = time.perf_counter()
         if full is None:  # decimate the recorded image, then scale it (the float32 values decimate() gives)
-            prepared = pipe.prepare(frame.depth, V, F, depth_scale=frame.depth_scale)
+            prepared = pipe.prepare(frame.depth, V, F, depth_scale=frame.depth_scale, colour=frame.color)
             t_arm = time.perf_counter()
             out = pipe.process(None, tcp=tcp, gripper_closed=closed, prepared=prepared, tcp_rot=rot)
         else:
             t_arm = None
-            out = pipe.process(full, V, F, tcp, closed, tcp_rot=rot)
+            out = pipe.process(full, V, F, tcp, closed, tcp_rot=rot, colour=frame.color)
         ms.append((time.perf_counter() - t0) * 1e3)
         stages.append({**out.timings_ms, "total": ms[-1]} if t_arm is None else
                       {**out.timings_ms, "arm": (t_arm - t0) * 1e3, "total": ms[-1]})
@@ -328,7 +329,9 @@ def track_sequence(
     assert pipe.background is not None  # set at initialisation
 
     def make_pipeline() -> LivePipeline:
-        return LivePipeline(params, seq.K, seq.T_world_cam, kind)
+        p = LivePipeline(params, seq.K, seq.T_world_cam, kind)
+        p.colour_model = pipe.colour_model  # measured at the forward pass's initialisation
+        return p
 
     filled = fill_missing(raw, grasp, topology, pipe.background, make_pipeline, frame_input)  # asks missing frames
     second, again, kept = retrack_tangled(raw, grasp, tangled_at, [i for i, q in filled.quality.items() if q[0]],

@@ -92,6 +92,6 @@ def track_variants(
                 pipe = pipes[name]
                 if v.tracking_params is not None:  # (re-)initialisation with the full method, the solve ablated
                     pipe.tracker.params = v.tracking_params if pipe.tracker.initialised else v.params
-                outs[name] = pipe.process(depth, V, F, tcp, closed, tcp_rot=rot)
+                outs[name] = pipe.process(depth, V, F, tcp, closed, tcp_rot=rot, colour=frame.color)
             yield i, frame, outs, seq
             i += 1

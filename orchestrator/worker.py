@@ -320,7 +320,7 @@ class Worker:
         if state is not None:
             V, F, tcp, closed, rot = self.arms.from_state(state)
         before = pipe.state
-        out = pipe.process(frame.depth_m(), V, F, tcp, closed, tcp_rot=rot)
+        out = pipe.process(frame.depth_m(), V, F, tcp, closed, tcp_rot=rot, colour=frame.color)
         if self._reference_gap is not None and pipe.state == "tracking":
             pipe.reference_gap, self._reference_gap = self._reference_gap, None
         if out.status == "init":

@@ -85,13 +85,13 @@ def verify_sequence_files(path: str | Path, *, except_streamed: bool = False, st
     """Check a paper-layout dataset's .npz files completely (zip CRCs) before a long job reads them.
 
     Raises DatasetError naming the first corrupt file; episode files need no check here (MCAP chunks
-    carry their own CRCs, checked as they are read). except_streamed: leave out ``rgbd.npz``'s depth array,
-    for a caller that reads every frame's depth (``Sequence.frames.iter_depth``), whose stream checks that
-    CRC itself at its end. structure_only: only that every file opens as a zip (cheap; catches truncation).
+    carry their own CRCs, checked as they are read). except_streamed: leave out ``rgbd.npz``'s depth and colour
+    arrays, for a caller that reads every frame's (``Sequence.frames.iter_depth``), whose stream checks those
+    CRCs itself at their end. structure_only: only that every file opens as a zip (cheap; catches truncation).
     """
     path = Path(path)
     folder = path.parent if path.name == RGBD_FILE else path
     if folder.is_dir() and (folder / RGBD_FILE).is_file():
         for f in paper_layout_files(folder):
-            skip = ("depth.npy",) if except_streamed and f.name == RGBD_FILE else ()
+            skip = ("depth.npy", "color.npy") if except_streamed and f.name == RGBD_FILE else ()
             verify_npz(f, skip, structure_only)

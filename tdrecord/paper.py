@@ -340,9 +340,12 @@ def read_paper_layout(
                 depth_scale=DEPTH_SCALE_MM, intrinsics=intr, device_stamp=t, host_stamp=t, frame_number=k,
             )
 
-    def depth_rows(start: int) -> Iterator[DepthImage]:
-        for k, depth in enumerate(_iter_npz_rows(rgbd, "depth", skip + start), start=start):
-            yield DepthImage(depth=depth.astype(np.uint16, copy=False), depth_scale=DEPTH_SCALE_MM, frame_number=k)
+    def depth_rows(start: int) -> Iterator[DepthImage]:  # with the colour: tracking tells low points by it
+        rows = zip(_iter_npz_rows(rgbd, "color", skip + start), _iter_npz_rows(rgbd, "depth", skip + start),
+                   strict=True)
+        for k, (bgr, depth) in enumerate(rows, start=start):
+            yield DepthImage(depth=depth.astype(np.uint16, copy=False), depth_scale=DEPTH_SCALE_MM, frame_number=k,
+                             color=np.ascontiguousarray(bgr[..., ::-1]))
 
     def depth_frames(start: int) -> Iterator[DepthImage]:  # decompressed by a reader thread, a few frames ahead
         return read_ahead(lambda: depth_rows(start))

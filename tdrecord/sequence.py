@@ -27,13 +27,15 @@ class DatasetError(ValueError):
 
 @dataclass(frozen=True)
 class DepthImage:
-    """One frame's depth without its colour (what tracking reads): depth (H, W) uint16, ``depth * depth_scale``
-    metres, 0 = no data; frame_number: the frame's index in its sequence; ground_truth as in RGBDFrame."""
+    """One frame's depth for tracking: depth (H, W) uint16, ``depth * depth_scale`` metres, 0 = no data;
+    frame_number: the frame's index in its sequence; ground_truth as in RGBDFrame; color (H, W, 3) uint8 RGB where
+    the reader has it without decoding a video (None: a depth-only reader)."""
 
     depth: np.ndarray
     depth_scale: float
     frame_number: int
     ground_truth: GroundTruth | None = None
+    color: np.ndarray | None = None
 
     def depth_m(self) -> np.ndarray:
         """(H, W) float32 depth in metres, 0 where missing (as ``RGBDFrame.depth_m``)."""

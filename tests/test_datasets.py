@@ -254,11 +254,13 @@ def test_paper_layout_round_trip(tmp_path: Path, compress: bool) -> None:
 def test_paper_layout_depth_only_stream_matches_frames(tmp_path: Path, compress: bool) -> None:
     folder, frames, _ = _paper(tmp_path, compress=compress)
     seq = read_sequence(folder)
-    got = list(seq.frames.iter_depth())  # depth only, decoded by a reader thread
-    assert [d.frame_number for d in got] == list(range(5)) and not hasattr(got[0], "color")
+    got = list(seq.frames.iter_depth())  # depth and colour arrays, decoded by a reader thread
+    assert [d.frame_number for d in got] == list(range(5))
     for d, ref in zip(got, frames, strict=True):
         assert d.depth.dtype == np.uint16 and d.depth_scale == ref.depth_scale
         np.testing.assert_array_equal(d.depth_m(), ref.depth_m())
+        assert d.color is not None
+        np.testing.assert_array_equal(d.color, ref.color)  # RGB, as the whole frames
     assert [d.frame_number for d in seq.frames.iter_depth(3)] == [3, 4]
     assert [d.frame_number for d in iter_depth(frames)] == list(range(5))  # a list: the frames themselves
 

@@ -96,3 +96,31 @@ def test_cloth_is_never_lost_and_keeps_its_grid_on_the_cloth():
     assert np.sqrt(np.mean(gt**2)) < 6.0 and gt.max() < 10.0  # mm to the true mid-surface
     assert np.mean(abs_mm) < 5.0 and np.median(cd_mm) < 5.0  # edge lengths kept, keypoints on the cloud
     assert all(o.status == "tracking" for o in after[1:])  # not even degraded
+
+
+def test_a_ropes_colour_is_measured_at_initialisation_and_tells_it_from_the_table():
+    """The pipeline fed colour frames measures the rope's colour when it initialises: the rope's own points read
+    as the object, points on the table beside it (where the reference saw the table) as the background."""
+    from benchmarks.tracking import _arm_inputs
+    from tracking.colour import BACKGROUND, OBJECT, classify
+    from tracking.pipeline import LivePipeline
+
+    cfg = station_config(W, H)
+    obj = object_config(cfg, "rope")
+    seq = simulate(cfg, obj, 2.5, "medium")
+    params = params_for(cfg, obj)
+    pipe = LivePipeline(params, seq.K, seq.T_world_cam, DIMENSION[obj.category])
+    for f, (V, F, tcp, closed, rot) in zip(seq.frames, _arm_inputs(seq), strict=True):
+        out = pipe.process(f.depth.astype(np.float32) * np.float32(1e-3), V, F, tcp, closed, tcp_rot=rot,
+                           colour=f.color)
+        if out.status == "tracking":
+            break
+    assert out.status == "tracking" and pipe.colour_model is not None
+    colour = out.prepared.colour
+    assert colour is not None and colour.shape[:2] == out.prepared.depth.shape
+    on = f.gt.centreline[::10]
+    told = classify(on, colour, pipe.colour_model, pipe.K_seg, pipe.T, params.colour_radius_m)
+    assert (told == OBJECT).mean() > 0.8
+    # 15 cm beside it (the table, the arms' bases, the other objects): not the rope's colour
+    off = classify(on + [0.0, 0.15, 0.0], colour, pipe.colour_model, pipe.K_seg, pipe.T, params.colour_radius_m)
+    assert (off != OBJECT).mean() > 0.8 and (off == BACKGROUND).any()

@@ -51,6 +51,12 @@ class TrackingParams:
       track_attach_m: in tracking, points DBSCAN leaves out are kept within this of the parts of the
         previous object the kept clusters do not cover, and a cloth's points of kept clusters less than
         attach_min_height_m above the table only within this of the previous object (``select_clusters_near``), m.
+      colour_band_m, colour_min_separation, colour_radius_m: with the frame's colour, a 1D object's left-out points
+        less than colour_band_m (m) above the table (the height the table's stereo noise reaches beside a part
+        lying on it) stay out where their colour is the table's (``tracking.colour``): the object's where a pixel
+        within colour_radius_m (m, at the point's depth) of the point's own is, the table's where their own pixel
+        is nearer the reference frame's chromaticity there; told only where that lies farther than
+        colour_min_separation (or three robust deviations of the object's own) from the object's.
       background_object_gap_m: a farther reading is absorbed into the background only if its 3D
         point lies more than this from the tracked object (last cloud, keypoint edges): else it is
         the object moving away from the camera, m.
@@ -192,6 +198,9 @@ class TrackingParams:
     no_return_open_m: float = 0.02
     track_gate_m: float = 0.05
     track_attach_m: float = 0.025
+    colour_band_m: float = 0.01
+    colour_min_separation: float = 0.05
+    colour_radius_m: float = 0.008
     background_object_gap_m: float = 0.015
     background_confirm_1d: int = 3
     background_confirm_2d: int = 2

@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 
 from tdcommon.meshes import OutwardCache
 from tracking.classify import classify_object
+from tracking.colour import ColourModel, classify, measure_object
 from tracking.geometry import (
     behind_nearest_occluder,
     decimated_intrinsics,
@@ -88,11 +89,13 @@ _EMPTY = np.zeros((0, 3))
 @dataclass(frozen=True)
 class PreparedFrame:
     """What ``LivePipeline.process`` computes first from a frame, before any state is used: its decimated depth
-    (h, w) float32 m and arm mask (h, w) bool (None without arm meshes). An offline pass that tracks the frame
-    again hands it back (``process(prepared=...)``) instead of decimating and rendering the arms again."""
+    (h, w) float32 m, arm mask (h, w) bool (None without arm meshes) and colour (h, w, 3) uint8 (None without
+    one). An offline pass that tracks the frame again hands it back (``process(prepared=...)``) instead of
+    decimating and rendering the arms again."""
 
     depth: np.ndarray
     arm: np.ndarray | None
+    colour: np.ndarray | None = None
 
 
 def object_samples(X: np.ndarray, topology: Topology, n: int = 6) -> np.ndarray:
@@ -160,14 +163,19 @@ class LivePipeline:
         )
         self.tracker = Tracker(params, self.K, self.T)
         self._cullable = OutwardCache()  # the arm meshes' back faces the arm mask may skip, per topology
+        # the object's and the empty scene's colours, measured at a 1D object's initialisation (None without colour
+        # frames): kept through reset and resume, so an offline pass's pipeline is given the forward pass's
+        self.colour_model: ColourModel | None = None
         self.reset()
 
     def reset(self) -> None:
         """Forget everything: the next frame becomes the reference D0."""
         self.tracker.reset()
         self._d0: np.ndarray | None = None
+        self._c0: np.ndarray | None = None  # the reference's decimated colour, when frames have one
         self._support: tuple[np.ndarray, float] | None = None  # the table plane in D0 (normal, offset m)
         self._recent: deque[np.ndarray] = deque(maxlen=3)
+        self._recent_colour: deque[np.ndarray | None] = deque(maxlen=3)
         self._since_recent = 0
         self._sizes: deque[int] = deque(maxlen=self.init_stable_frames + 1)
         self._grasp_rejections = 0
@@ -208,19 +216,23 @@ class LivePipeline:
 
     def prepare(
         self, depth: np.ndarray, arm_vertices: np.ndarray | None = None, arm_triangles: np.ndarray | None = None,
-        depth_scale: float | None = None,
+        depth_scale: float | None = None, colour: np.ndarray | None = None,
     ) -> PreparedFrame:
-        """A frame's decimated depth and arm mask (``PreparedFrame``) from its depth (H, W) float32 m and arm
-        mesh (V, 3) m world + (F, 3) int: stateless, the first step of ``process``. With ``depth_scale`` (m per
-        unit) depth is the recorded integer image, decimated before it is scaled (as ``RGBDFrame.depth_m``
-        scales it: the same float32 values without converting the whole image)."""
+        """A frame's decimated depth, arm mask and colour (``PreparedFrame``) from its depth (H, W) float32 m, arm
+        mesh (V, 3) m world + (F, 3) int and colour (H, W, 3) uint8 (registered to the depth; another size is left
+        out): stateless, the first step of ``process``. With ``depth_scale`` (m per unit) depth is the recorded
+        integer image, decimated before it is scaled (as ``RGBDFrame.depth_m`` scales it: the same float32 values
+        without converting the whole image)."""
         if depth_scale is None:
             dec = self.decimate(depth)
         else:
             dec = np.ascontiguousarray(depth[:: self.stride, :: self.stride]).astype(np.float32) * np.float32(
                 depth_scale
             )
-        return PreparedFrame(dec, self.arm_mask(dec, arm_vertices, arm_triangles))
+        col = None
+        if colour is not None and colour.shape[:2] == depth.shape[:2] and colour.ndim == 3:
+            col = np.ascontiguousarray(colour[:: self.stride, :: self.stride, :3], np.uint8)
+        return PreparedFrame(dec, self.arm_mask(dec, arm_vertices, arm_triangles), col)
 
     def process(
         self,
@@ -231,10 +243,12 @@ class LivePipeline:
         gripper_closed: np.ndarray | None = None,
         prepared: PreparedFrame | None = None,
         tcp_rot: np.ndarray | None = None,
+        colour: np.ndarray | None = None,
     ) -> PipelineOutput:
         """One frame: depth (H, W) float32 m; both arms as one mesh (V, 3) m world + (F, 3) int;
         tcp (G, 3) m world, tcp_rot (G, 3, 3) (TCP frame to world; optional) and gripper_closed (G,) bool of the
-        grippers (G = 2: left, right).
+        grippers (G = 2: left, right); colour (H, W, 3) uint8 RGB registered to the depth (optional: a 1D
+        object's points lying low are then told from the table by it, ``tracking.colour``).
         prepared: this frame's ``PreparedFrame`` from an earlier ``prepare`` / output (the arm meshes are then
         not needed); depth may then be None unless the pipeline still has to initialise (it re-lifts the
         initial cloud from the full-resolution depth)."""
@@ -242,20 +256,20 @@ class LivePipeline:
         if prepared is None:
             if depth is None:
                 raise ValueError("LivePipeline.process: no depth and no prepared frame")
-            prepared = self.prepare(depth, arm_vertices, arm_triangles)
+            prepared = self.prepare(depth, arm_vertices, arm_triangles, colour=colour)
         elif depth is None and self._d0 is not None and not self.tracker.initialised:
             raise ValueError("LivePipeline.process: initialising needs the full-resolution depth, not only a "
                              "prepared frame")
-        full, depth, arm = depth, prepared.depth, prepared.arm
+        full, depth, arm, col = depth, prepared.depth, prepared.arm, prepared.colour
         self._timings = {"arm": 1e3 * (time.perf_counter() - t0)}
         if self._d0 is None:
-            self.set_reference(depth)
+            self.set_reference(depth, col)
             out = self._empty("reference")
         elif not self.tracker.initialised:
             assert full is not None  # checked above
-            out = self._try_initialise(depth, arm, tcp, gripper_closed, full)
+            out = self._try_initialise(depth, arm, tcp, gripper_closed, full, col)
         else:
-            out = self._track(depth, arm, tcp, gripper_closed, tcp_rot)
+            out = self._track(depth, arm, tcp, gripper_closed, tcp_rot, col)
         if self._prev.maxlen:
             self._prev.append(depth)
         self._timings["total"] = 1e3 * (time.perf_counter() - t0)
@@ -407,10 +421,12 @@ class LivePipeline:
         self._d0 = self.background
         self._support = support_plane(self.background, self.K_seg, self.T, self.seg_params)
 
-    def set_reference(self, depth: np.ndarray) -> None:
+    def set_reference(self, depth: np.ndarray, colour: np.ndarray | None = None) -> None:
         """Make a decimated depth (h, w) m the reference D0 (and find the table plane in it: an
-        object's parts that did not move stand above it); ``process`` does this on its first frame."""
+        object's parts that did not move stand above it), with its decimated colour (h, w, 3) uint8 if any;
+        ``process`` does this on its first frame."""
         self._d0 = depth
+        self._c0 = colour
         self._support = support_plane(depth, self.K_seg, self.T, self.seg_params)
 
     # ---------------------------------------------------------------- internals
@@ -423,10 +439,11 @@ class LivePipeline:
         refs = np.stack([self._d0, *self._recent])
         return refs if self.kind == "2d" else far_where_no_return(refs, self.K_seg, self.seg_params)
 
-    def _remember(self, depth: np.ndarray) -> None:
+    def _remember(self, depth: np.ndarray, colour: np.ndarray | None = None) -> None:
         self._since_recent += 1
         if self._since_recent >= self.reference_gap:
             self._recent.append(depth)
+            self._recent_colour.append(colour)
             self._since_recent = 0
 
     def _growing(self, n: int) -> bool:
@@ -438,14 +455,14 @@ class LivePipeline:
 
     def _try_initialise(
         self, depth: np.ndarray, arm: np.ndarray | None, tcp: np.ndarray | None, closed: np.ndarray | None,
-        full: np.ndarray,
+        full: np.ndarray, colour: np.ndarray | None = None,
     ) -> PipelineOutput:
         refs = self._references()
         t0 = time.perf_counter()
         seg = self.segment_initial(refs, depth, arm)
         t1 = time.perf_counter()
         self._timings["segment"] = 1e3 * (t1 - t0)
-        self._remember(depth)
+        self._remember(depth, colour)
         n = len(seg.points)
         if self._growing(n) or n < self.min_init_points:
             return self._empty("waiting", n, "waiting for the arms to move the object")
@@ -476,11 +493,14 @@ class LivePipeline:
         self.background = update_background(bg, depth, self.seg_params, arm, keep=keep)
         self._sizes.clear()
         self._grasp_rejections = 0
+        if self.kind != "2d" and colour is not None and self._c0 is not None and colour.shape == self._c0.shape:
+            self.colour_model = measure_object(colour, self._c0, cloud, self.K_seg, self.T,
+                                               self.params.colour_min_separation)
         return self._output("init", res, seg.points)
 
     def _track(
         self, depth: np.ndarray, arm: np.ndarray | None, tcp: np.ndarray | None, closed: np.ndarray | None,
-        tcp_rot: np.ndarray | None = None,
+        tcp_rot: np.ndarray | None = None, colour: np.ndarray | None = None,
     ) -> PipelineOutput:
         assert self.background is not None
         t0 = time.perf_counter()
@@ -489,9 +509,14 @@ class LivePipeline:
         samples = object_samples(X, topo)
         thr = change_threshold(self.background, self.seg_params)  # one per frame, for the three tests below
         behind = behind_near_object(depth, self.background, self.seg_params, samples, self.K_seg, self.T, arm, thr)
+        told = None  # a 1D object's low points: the object's colour or the table's
+        if topo.kind == "1d" and colour is not None and self.colour_model is not None and \
+                colour.shape == self.colour_model.reference.shape:
+            told = partial(classify, colour=colour, model=self.colour_model, K=self.K_seg, T_world_cam=self.T,
+                           radius_m=self.params.colour_radius_m)
         seg = segment_against_background(
             depth, self.background, self.K_seg, self.T, self.seg_params, arm, X, behind, self._support, samples, thr,
-            flat=topo.kind == "2d",
+            flat=topo.kind == "2d", colour=told,
         )
         if topo.kind == "1d":
             seg = complete_thin_parts(depth, seg, self.K_seg, self.T, self.seg_params, arm, self._support)
@@ -525,11 +550,15 @@ class LivePipeline:
         self.background = update_background(
             self.background, depth, self.seg_params, arm, prev, behind, nearest=topo.kind != "2d", thr=thr
         )
-        self._remember(depth)
+        self._remember(depth, colour)
         if res.status == TrackStatus.LOST:
             # back to waiting: the recent frames (object elsewhere) become the references
-            self.set_reference(self._recent[0] if self._recent else depth)
+            if self._recent:
+                self.set_reference(self._recent[0], self._recent_colour[0])
+            else:
+                self.set_reference(depth, colour)
             self._recent.clear()
+            self._recent_colour.clear()
             self._sizes.clear()
             out = self._output("lost", res, seg.points, grid=topo.kind == "2d")
             return PipelineOutput(**{**out.__dict__, "topology": topology})

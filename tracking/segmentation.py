@@ -12,6 +12,7 @@ same small helpers (pixel masks, the support plane, DBSCAN on voxels) and the ``
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import lru_cache
 
@@ -21,6 +22,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from tracking.colour import BACKGROUND
 from tracking.geometry import depth_to_points, pixel_mask, project_points
 from tracking.kernels import dbscan, near_any, voxel_centroids, zbuffer_triangles
 from tracking.params import TrackingParams
@@ -361,6 +363,7 @@ def _clusters_near(
 def select_clusters_near(
     points: np.ndarray, labels: np.ndarray, keypoints: np.ndarray, params: TrackingParams,
     support: tuple[np.ndarray, float] | None = None, samples: np.ndarray | None = None, flat: bool = True,
+    colour: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> np.ndarray:
     """Clusters with a point within ``track_gate_m`` of the previous keypoints (N, 3) -> (M, 3) float64, m.
 
@@ -378,7 +381,11 @@ def select_clusters_near(
     ``track_attach_m`` of the previous object: it stays within that of where it lay. An object that cannot (a
     rope, a branched rope) keeps of its clusters only the points within ``track_gate_m`` of the previous object:
     a cluster of the table's stereo noise beside a part lying low joins through a point near it and reaches
-    10-17 cm beyond, where it drew a tip's keypoint off the object (a cloth's sheet is kept whole)."""
+    10-17 cm beyond, where it drew a tip's keypoint off the object (a cloth's sheet is kept whole).
+    colour: points (K, 3) m -> (K,) int8 ``tracking.colour.classify`` (this frame's): for an object that cannot
+    lie flat, the left-out points lower than ``colour_band_m`` above the table whose colour is the table's stay
+    out too (the table's stereo noise beside a part lying low reaches as high as that part's own sparse points;
+    colour tells them apart where the table's colour is not the object's)."""
     ok = labels >= 0
     if len(keypoints) == 0 or len(points) == 0:
         return np.zeros((0, 3))
@@ -400,6 +407,10 @@ def select_clusters_near(
     loose[ok] &= ~big[labels[ok]]
     if height is not None:
         loose &= height >= params.attach_min_height_m  # as points_above_support
+        if colour is not None and not flat:
+            band = np.flatnonzero(loose & (height < params.colour_band_m))
+            if len(band):
+                loose[band[colour(points[band]) == BACKGROUND]] = False
     if params.track_attach_m <= 0 or not loose.any():
         return points[keep]
     attach = params.track_attach_m
@@ -428,10 +439,11 @@ def _cluster(
     support: tuple[np.ndarray, float] | None = None,
     samples: np.ndarray | None = None,
     flat: bool = True,
+    colour: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> Segmentation:
     """Lift foreground (H, W) bool pixels, voxelise, DBSCAN and select the object clusters
-    (``select_clusters_near`` with prev_keypoints, the table plane ``support``, ``samples`` and ``flat``, else the
-    largest)."""
+    (``select_clusters_near`` with prev_keypoints, the table plane ``support``, ``samples``, ``flat`` and
+    ``colour``, else the largest)."""
     s = max(1, params.lift_stride)
     sub = np.zeros_like(fg)
     sub[::s, ::s] = fg[::s, ::s]
@@ -442,7 +454,7 @@ def _cluster(
     if prev_keypoints is None:
         obj = select_largest_clusters(vox, labels, params)
     else:
-        obj = select_clusters_near(vox, labels, prev_keypoints, params, support, samples, flat)
+        obj = select_clusters_near(vox, labels, prev_keypoints, params, support, samples, flat, colour)
     return Segmentation(obj, len(pts), n_clusters)
 
 
@@ -1045,6 +1057,7 @@ def segment_against_background(
     samples: np.ndarray | None = None,
     thr: np.ndarray | None = None,
     flat: bool = True,
+    colour: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> Segmentation:
     """Per-frame segmentation: pixels in front of the background minus arms, clustered.
 
@@ -1053,9 +1066,9 @@ def segment_against_background(
     extra: (H, W) bool pixels known to be object as well (``behind_near_object``). support: the table plane
     (``support_plane``), samples: (S, 3) m points along the previous object (``select_clusters_near``).
     thr: ``change_threshold(background)`` when the caller has it. flat: the object can lie flat on the table
-    (``select_clusters_near``).
+    (``select_clusters_near``), colour: the frame's ``tracking.colour.classify`` of points (``select_clusters_near``).
     """
     fg = foreground_mask(depth, background, params, arm_mask, thr)
     if extra is not None:
         fg |= extra
-    return _cluster(depth, fg, K, T_world_cam, params, prev_keypoints, support, samples, flat)
+    return _cluster(depth, fg, K, T_world_cam, params, prev_keypoints, support, samples, flat, colour)
