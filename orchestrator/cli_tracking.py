@@ -163,7 +163,8 @@ class _Pending(NamedTuple):
              closed: np.ndarray | None, tcp_rot: np.ndarray | None) -> _Pending:
         arm = None if prepared.arm is None else np.packbits(prepared.arm, axis=None)
         dec = np.ascontiguousarray(depth[::stride, ::stride])
-        p = _Pending(dec, scale, arm, prepared.depth.shape, tcp, closed, tcp_rot, prepared.colour)
+        colour = None if prepared.colour is None else np.ascontiguousarray(prepared.colour)  # not the whole frame
+        p = _Pending(dec, scale, arm, prepared.depth.shape, tcp, closed, tcp_rot, colour)
         if dec.dtype.kind not in "ui" or dec.shape != p.shape or not np.array_equal(p.prepared().depth,
                                                                                   prepared.depth):
             p = p._replace(depth=prepared.depth.copy(), scale=1.0)  # not so exact: keep the float32 image

@@ -345,7 +345,7 @@ def read_paper_layout(
                    strict=True)
         for k, (bgr, depth) in enumerate(rows, start=start):
             yield DepthImage(depth=depth.astype(np.uint16, copy=False), depth_scale=DEPTH_SCALE_MM, frame_number=k,
-                             color=np.ascontiguousarray(bgr[..., ::-1]))
+                             color=bgr[..., ::-1])  # an RGB view: tracking reads a few pixels of it
 
     def depth_frames(start: int) -> Iterator[DepthImage]:  # decompressed by a reader thread, a few frames ahead
         return read_ahead(lambda: depth_rows(start))

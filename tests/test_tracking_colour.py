@@ -37,7 +37,7 @@ def test_low_points_are_told_by_colour_in_light_and_shadow() -> None:
     got = classify(np.concatenate([rope, table, edge]), now, model, K, T, P.colour_radius_m)
     assert got.tolist() == [OBJECT] * 9 + [BACKGROUND] * 9 + [OBJECT] * 2
     # where the reference held the object's colour itself (or a table of its colour) colour cannot decide
-    same = ColourModel(now.copy(), model.object, model.separation)
+    same = ColourModel(chroma(now), model.object, model.separation)
     assert (classify(rope, now, same, K, T, P.colour_radius_m) == UNKNOWN).all()
     # out of the image: unknown
     assert classify(np.array([[5.0, 0.0, 1.0]]), now, model, K, T, P.colour_radius_m).tolist() == [UNKNOWN]

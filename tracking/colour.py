@@ -28,9 +28,9 @@ def chroma(rgb: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class ColourModel:
-    """The scene's colours for ``classify``: reference (h, w, 3) uint8, the empty scene (the reference frame D0's
-    colour, decimated as the depth is); object (2,) float32, the object's median chromaticity; separation: the least
-    chromaticity distance between the two at a pixel for colour to decide there."""
+    """The scene's colours for ``classify``: reference (h, w, 2) float32, the empty scene's chromaticity (the
+    reference frame D0's colour, decimated as the depth is); object (2,) float32, the object's median chromaticity;
+    separation: the least chromaticity distance between the two at a pixel for colour to decide there."""
 
     reference: np.ndarray
     object: np.ndarray
@@ -51,7 +51,7 @@ def measure_object(
     ch = chroma(colour[r[inside], c[inside]])
     obj = np.median(ch, axis=0)
     spread = 1.4826 * float(np.median(np.linalg.norm(ch - obj, axis=1)))
-    return ColourModel(np.ascontiguousarray(reference), obj.astype(np.float32), max(min_separation, 3.0 * spread))
+    return ColourModel(chroma(reference), obj.astype(np.float32), max(min_separation, 3.0 * spread))
 
 
 def classify(
@@ -72,20 +72,16 @@ def classify(
     idx = np.flatnonzero(inside)
     if not len(idx):
         return out
-    rad = np.ceil(radius_m * float(K[0, 0]) / np.maximum(z[idx], 1e-3)).astype(np.int64)
+    rad = np.ceil(radius_m * float(K[0, 0]) / np.maximum(z[idx], 1e-3)).astype(np.int64)  # (P,) px
     m = int(rad.max())
-
-    def verdict(rr: np.ndarray, cc: np.ndarray) -> np.ndarray:
-        ch, ref = chroma(colour[rr, cc]), chroma(model.reference[rr, cc])
-        sep = np.linalg.norm(ref - model.object, axis=1) > model.separation
-        near = np.linalg.norm(ch - model.object, axis=1) < np.linalg.norm(ch - ref, axis=1)
-        return np.where(sep, np.where(near, OBJECT, BACKGROUND), UNKNOWN).astype(np.int8)
-
-    seen = np.zeros(len(idx), bool)  # some pixel of the window is the object's
-    for dy in range(-m, m + 1):
-        for dx in range(-m, m + 1):
-            ok = (abs(dy) <= rad) & (abs(dx) <= rad)
-            rr, cc = np.clip(r[idx] + dy, 0, h - 1), np.clip(c[idx] + dx, 0, w - 1)
-            seen |= ok & (verdict(rr, cc) == OBJECT)
-    out[idx] = np.where(seen, OBJECT, verdict(r[idx], c[idx]))
+    dy, dx = (a.ravel() for a in np.mgrid[-m : m + 1, -m : m + 1])  # (W,) offsets, the own pixel at W // 2
+    rr = np.clip(r[idx, None] + dy, 0, h - 1)  # (P, W)
+    cc = np.clip(c[idx, None] + dx, 0, w - 1)
+    ch, ref = chroma(colour[rr, cc]), model.reference[rr, cc]  # (P, W, 2)
+    sep = np.linalg.norm(ref - model.object, axis=2) > model.separation
+    near = np.linalg.norm(ch - model.object, axis=2) < np.linalg.norm(ch - ref, axis=2)
+    verdict = np.where(sep, np.where(near, OBJECT, BACKGROUND), UNKNOWN).astype(np.int8)
+    window = (np.abs(dy) <= rad[:, None]) & (np.abs(dx) <= rad[:, None])
+    seen = (window & (verdict == OBJECT)).any(axis=1)
+    out[idx] = np.where(seen, OBJECT, verdict[:, (len(dy) - 1) // 2])
     return out

@@ -89,9 +89,9 @@ _EMPTY = np.zeros((0, 3))
 @dataclass(frozen=True)
 class PreparedFrame:
     """What ``LivePipeline.process`` computes first from a frame, before any state is used: its decimated depth
-    (h, w) float32 m, arm mask (h, w) bool (None without arm meshes) and colour (h, w, 3) uint8 (None without
-    one). An offline pass that tracks the frame again hands it back (``process(prepared=...)``) instead of
-    decimating and rendering the arms again."""
+    (h, w) float32 m, arm mask (h, w) bool (None without arm meshes) and colour (h, w, 3) uint8 (a strided view of
+    the frame's; None without one, or for a cloth). An offline pass that tracks the frame again hands it back
+    (``process(prepared=...)``) instead of decimating and rendering the arms again."""
 
     depth: np.ndarray
     arm: np.ndarray | None
@@ -229,9 +229,9 @@ class LivePipeline:
             dec = np.ascontiguousarray(depth[:: self.stride, :: self.stride]).astype(np.float32) * np.float32(
                 depth_scale
             )
-        col = None
-        if colour is not None and colour.shape[:2] == depth.shape[:2] and colour.ndim == 3:
-            col = np.ascontiguousarray(colour[:: self.stride, :: self.stride, :3], np.uint8)
+        col = None  # a view: a cloth's colour is not read, a rope's at a few hundred pixels a frame
+        if self.kind != "2d" and colour is not None and colour.ndim == 3 and colour.shape[:2] == depth.shape[:2]:
+            col = colour[:: self.stride, :: self.stride, :3]
         return PreparedFrame(dec, self.arm_mask(dec, arm_vertices, arm_triangles), col)
 
     def process(
@@ -426,7 +426,7 @@ class LivePipeline:
         object's parts that did not move stand above it), with its decimated colour (h, w, 3) uint8 if any;
         ``process`` does this on its first frame."""
         self._d0 = depth
-        self._c0 = colour
+        self._c0 = None if colour is None else np.array(colour)  # a copy: it outlives the caller's frame
         self._support = support_plane(depth, self.K_seg, self.T, self.seg_params)
 
     # ---------------------------------------------------------------- internals
@@ -443,7 +443,7 @@ class LivePipeline:
         self._since_recent += 1
         if self._since_recent >= self.reference_gap:
             self._recent.append(depth)
-            self._recent_colour.append(colour)
+            self._recent_colour.append(None if colour is None else np.array(colour))
             self._since_recent = 0
 
     def _growing(self, n: int) -> bool:
@@ -511,7 +511,7 @@ class LivePipeline:
         behind = behind_near_object(depth, self.background, self.seg_params, samples, self.K_seg, self.T, arm, thr)
         told = None  # a 1D object's low points: the object's colour or the table's
         if topo.kind == "1d" and colour is not None and self.colour_model is not None and \
-                colour.shape == self.colour_model.reference.shape:
+                colour.shape[:2] == self.colour_model.reference.shape[:2]:
             told = partial(classify, colour=colour, model=self.colour_model, K=self.K_seg, T_world_cam=self.T,
                            radius_m=self.params.colour_radius_m)
         seg = segment_against_background(
