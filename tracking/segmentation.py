@@ -407,10 +407,6 @@ def select_clusters_near(
     loose[ok] &= ~big[labels[ok]]
     if height is not None:
         loose &= height >= params.attach_min_height_m  # as points_above_support
-        if colour is not None and not flat:
-            band = np.flatnonzero(loose & (height < params.colour_band_m))
-            if len(band):
-                loose[band[colour(points[band]) == BACKGROUND]] = False
     if params.track_attach_m <= 0 or not loose.any():
         return points[keep]
     attach = params.track_attach_m
@@ -418,6 +414,10 @@ def select_clusters_near(
     # coverage by the kept clusters (the kept points beside them) can decide anything
     cand = np.flatnonzero(loose)
     cand = cand[_near_points(points[cand], ref, attach)]
+    if colour is not None and not flat and height is not None and len(cand):
+        band = height[cand] < params.colour_band_m
+        if band.any():
+            cand = np.delete(cand, np.flatnonzero(band)[colour(points[cand[band]]) == BACKGROUND])
     if len(cand) == 0:
         return points[keep]
     ref = ref[_near(ref, points[cand], attach)]
