@@ -261,7 +261,7 @@ def track_sequence(
     topology = None
     last = np.zeros((0, 3))  # the last frame's keypoints in the clip's numbering
     t_start = time.monotonic()
-    for i, frame in enumerate(iter_depth(seq.frames)):  # depth, and colour where the reader has it
+    for i, frame in enumerate(iter_depth(seq.frames, colour=kind != "2d")):  # a cloth's tracking reads no colour
         V, F, tcp, closed, rot = _arm_geometry(seq, i, arms)
         full = None if pipe.state == "tracking" else frame.depth_m()  # only initialising needs the whole image
         t0 = time.perf_counter()

@@ -6,6 +6,7 @@ Millimetres appear only in these files, as the paper's code expects them; what i
 
 from __future__ import annotations
 
+import itertools
 import math
 import struct
 import zipfile
@@ -340,15 +341,15 @@ def read_paper_layout(
                 depth_scale=DEPTH_SCALE_MM, intrinsics=intr, device_stamp=t, host_stamp=t, frame_number=k,
             )
 
-    def depth_rows(start: int) -> Iterator[DepthImage]:  # with the colour: tracking tells low points by it
-        rows = zip(_iter_npz_rows(rgbd, "color", skip + start), _iter_npz_rows(rgbd, "depth", skip + start),
-                   strict=True)
-        for k, (bgr, depth) in enumerate(rows, start=start):
+    def depth_rows(start: int, colour: bool) -> Iterator[DepthImage]:  # the colour where tracking reads it
+        depths = _iter_npz_rows(rgbd, "depth", skip + start)
+        colours = _iter_npz_rows(rgbd, "color", skip + start) if colour else itertools.repeat(None)
+        for k, (depth, bgr) in enumerate(zip(depths, colours, strict=colour), start=start):
             yield DepthImage(depth=depth.astype(np.uint16, copy=False), depth_scale=DEPTH_SCALE_MM, frame_number=k,
-                             color=bgr[..., ::-1])  # an RGB view: tracking reads a few pixels of it
+                             color=None if bgr is None else bgr[..., ::-1])  # an RGB view: a few pixels are read
 
-    def depth_frames(start: int) -> Iterator[DepthImage]:  # decompressed by a reader thread, a few frames ahead
-        return read_ahead(lambda: depth_rows(start))
+    def depth_frames(start: int, colour: bool = True) -> Iterator[DepthImage]:  # decompressed a few frames ahead
+        return read_ahead(lambda: depth_rows(start, colour))
 
     return Sequence(
         frames=FrameSource(frames, T, depth_frames),

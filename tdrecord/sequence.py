@@ -45,12 +45,13 @@ class DepthImage:
 class FrameSource:
     """A re-iterable, lazily decoded run of frames: every ``iter()`` reads them from disk again.
 
-    depth_factory(start), when given, yields the frames' depth only (``DepthImage``), skipping the colour
-    decoding a depth-only reader (tracking) does not need; without it ``iter_depth`` reads whole frames.
+    depth_factory(start, colour), when given, yields the frames' depth (``DepthImage``), with their colour where
+    colour is true and without decoding it where it is false (a cloth's tracking reads none); without it
+    ``iter_depth`` reads whole frames.
     """
 
     def __init__(self, factory: Callable[[int], Iterator[RGBDFrame]], length: int,
-                 depth_factory: Callable[[int], Iterator[DepthImage]] | None = None) -> None:
+                 depth_factory: Callable[[int, bool], Iterator[DepthImage]] | None = None) -> None:
         self._factory = factory
         self._length = int(length)
         self._depth_factory = depth_factory
@@ -65,18 +66,19 @@ class FrameSource:
         """Frames ``start, start + 1, ...`` (earlier ones are skipped without being decoded where possible)."""
         return self._factory(max(0, int(start)))
 
-    def iter_depth(self, start: int = 0) -> Iterator[DepthImage | RGBDFrame]:
-        """The depth of frames ``start, start + 1, ...``: ``DepthImage`` from the depth-only reader, else whole
-        frames (both have ``depth``, ``depth_scale``, ``ground_truth`` and ``depth_m()``)."""
+    def iter_depth(self, start: int = 0, colour: bool = True) -> Iterator[DepthImage | RGBDFrame]:
+        """The depth of frames ``start, start + 1, ...``: ``DepthImage`` from the depth reader (with its colour
+        where ``colour``), else whole frames (both have ``depth``, ``depth_scale``, ``ground_truth``, ``color``
+        and ``depth_m()``)."""
         if self._depth_factory is not None:
-            return self._depth_factory(max(0, int(start)))
+            return self._depth_factory(max(0, int(start)), colour)
         return self.iter_from(start)
 
 
-def iter_depth(frames: Iterable[RGBDFrame]) -> Iterator[DepthImage | RGBDFrame]:
-    """The depth of every frame of ``frames`` (a FrameSource: its depth-only reader where it has one; a list: the
-    frames themselves)."""
-    return frames.iter_depth() if isinstance(frames, FrameSource) else iter(frames)
+def iter_depth(frames: Iterable[RGBDFrame], colour: bool = True) -> Iterator[DepthImage | RGBDFrame]:
+    """The depth of every frame of ``frames`` (a FrameSource: its depth reader where it has one, with the colour where
+    ``colour``; a list: the frames themselves)."""
+    return frames.iter_depth(colour=colour) if isinstance(frames, FrameSource) else iter(frames)
 
 
 _Item = TypeVar("_Item")

@@ -262,6 +262,10 @@ def test_paper_layout_depth_only_stream_matches_frames(tmp_path: Path, compress:
         assert d.color is not None
         np.testing.assert_array_equal(d.color, ref.color)  # RGB, as the whole frames
     assert [d.frame_number for d in seq.frames.iter_depth(3)] == [3, 4]
+    depth_only = list(iter_depth(seq.frames, colour=False))  # a cloth's tracking: the colour is not decoded
+    assert [d.color for d in depth_only] == [None] * 5
+    for d, ref in zip(depth_only, frames, strict=True):
+        np.testing.assert_array_equal(d.depth_m(), ref.depth_m())
     assert [d.frame_number for d in iter_depth(frames)] == list(range(5))  # a list: the frames themselves
 
 
