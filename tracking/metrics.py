@@ -48,15 +48,19 @@ def sequence_summary(abs_mm: np.ndarray, cd_mm: np.ndarray) -> dict[str, float]:
     }
 
 
-def distance_to_polyline(points: np.ndarray, polyline: np.ndarray) -> np.ndarray:
-    """Distance (N,) m from points (N, 3) to the polyline (M, 3) m (segments; N x (M-1) work, N small)."""
-    a, b = polyline[:-1], polyline[1:]
+def segment_distances(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance (N, M) m from each point (N, 3) m to each segment from a (M, 3) to b (M, 3) m."""
     ab = b - a
     L2 = np.maximum(np.einsum("mk,mk->m", ab, ab), 1e-18)
     ap = points[:, None, :] - a[None]
     t = np.clip(np.einsum("nmk,mk->nm", ap, ab) / L2, 0.0, 1.0)
     d = ap - t[..., None] * ab[None]
-    return np.sqrt(np.einsum("nmk,nmk->nm", d, d).min(axis=1))
+    return np.sqrt(np.einsum("nmk,nmk->nm", d, d))
+
+
+def distance_to_polyline(points: np.ndarray, polyline: np.ndarray) -> np.ndarray:
+    """Distance (N,) m from points (N, 3) to the polyline (M, 3) m (segments; N x (M-1) work, N small)."""
+    return segment_distances(points, polyline[:-1], polyline[1:]).min(axis=1)
 
 
 def split_chains(samples: np.ndarray) -> list[np.ndarray]:

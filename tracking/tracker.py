@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 from tracking.anchors import detect_anchors_1d, detect_anchors_2d
 from tracking.init import Initialisation, Topology, initialise
 from tracking.kernels import nearest, warm_up
-from tracking.metrics import chamfer_mm, edge_rmse_mm
+from tracking.metrics import chamfer_mm, edge_rmse_mm, segment_distances
 from tracking.params import TrackingParams
 from tracking.skeleton import LEAF
 from tracking.solver import adjacency, chain_neighbours, hop_neighbours, relax_hidden, solve_keypoints
@@ -199,14 +199,6 @@ def regate_on_object(
     d[mine[:, e[:, 0]] | mine[:, e[:, 1]]] = np.inf
     out[a] = d.min(axis=1) < params.anchor_regate_clear * float(np.median(topology.rest))
     return out
-
-
-def segment_distances(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(P, S) m: the distance of each point p (P, 3) m to each segment from a (S, 3) to b (S, 3) m."""
-    ab = b - a
-    t = np.einsum("psk,sk->ps", p[:, None, :] - a[None], ab) / np.maximum(np.einsum("sk,sk->s", ab, ab), 1e-18)
-    q = a[None] + np.clip(t, 0.0, 1.0)[..., None] * ab[None]
-    return np.linalg.norm(p[:, None, :] - q, axis=2)
 
 
 def cloudless(topology: Topology, X: np.ndarray, cloud: np.ndarray | cKDTree, reach_m: float) -> np.ndarray:
