@@ -20,7 +20,9 @@ Columns: missing = frames with a missing keypoint (%); object / anchors / covera
 E<5 and F<10 in % of all frames (the scorer's definitions); ms/frame = the tracker's median per-frame
 time over the frames its forward pass tracked (``tracking_metrics.json``; not the frames before initialisation,
 which only wait for motion), fill ms/frame = the same for the frames tracked backwards (or forwards after a loss)
-from a tracked neighbour, wall ms/frame = the whole ``track`` command's wall time per
+from a tracked neighbour (the frames the forward pass left tangled and that are tracked again backwards are timed
+apart: ``retrack_ms_per_frame_median`` in ``tracking_metrics.json``, beside the forward pass's time for the same
+frames, ``retrack_forward_ms_per_frame_median``), wall ms/frame = the whole ``track`` command's wall time per
 frame (start-up, reading the clip, both passes, writing: what a lab waits for), cpu ms/frame = the CPU time
 (user + system, all its threads) the command used per frame, which a busy shared machine inflates less than
 the wall time. ``--cores N`` runs each ``track`` command on N cores of this process's affinity mask (1: the

@@ -348,10 +348,13 @@ def track_sequence(
         metrics["tracked_ms_per_frame_median"] = float(np.median(tracked_ms))
     metrics["backward_frames"], metrics["forward_filled_frames"] = filled.backward, filled.forward
     metrics["retracked_frames"], metrics["retracked_kept"] = again, kept  # tangled, tracked backwards again
-    if filled.ms or second.ms:
-        metrics["fill_ms_per_frame_median"] = float(np.median(filled.ms + second.ms))
-    metrics["stage_ms_median"] = {"forward": stage_medians(stages),
-                                  "fill": stage_medians(filled.stages + second.stages)}
+    if filled.ms:  # the frames without keypoints: before initialisation (backwards), after a loss
+        metrics["fill_ms_per_frame_median"] = float(np.median(filled.ms))
+    if second.ms:  # the tangled frames tracked again, and what the forward pass took for the same frames
+        metrics["retrack_ms_per_frame_median"] = float(np.median(second.ms))
+        metrics["retrack_forward_ms_per_frame_median"] = float(np.median([ms[i] for i in second.frames]))
+    metrics["stage_ms_median"] = {"forward": stage_medians(stages), "fill": stage_medians(filled.stages),
+                                  "retrack": stage_medians(second.stages)}
     metrics["statuses"] = {s: statuses.count(s) for s in sorted(set(statuses))}
     metrics["tangled_frames"], metrics["repaired_frames"] = tangles  # a grid's tangles, a chain's folds
     if gt_mm:

@@ -63,6 +63,7 @@ def test_fill_missing_tracks_backwards_and_forwards_from_one_frame() -> None:
     res = fill_missing(kps, grasp, tr.topology, make().decimate(bg), make,
                        lambda i: FrameInput(frames[i].depth, frames[i].arm_vertices, frames[i].arm_triangles))
     assert (res.backward, res.forward, len(res.ms)) == (seed, len(frames) - seed - 1, len(frames) - 1)
+    assert res.frames == [*range(seed - 1, -1, -1), *range(seed + 1, len(frames))]  # backwards, then forwards
     errs = [surface_error_mm(k, fr.centreline, fr.radius, polyline=True) for k, fr in zip(kps, frames, strict=True)]
     assert max(errs) < 3.0  # mm: every frame tracked, on the rope
     # the filled keypoints follow the rope: frame 0 and frame 11 differ by the rope's motion

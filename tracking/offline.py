@@ -44,12 +44,14 @@ class FrameInput:
 
 @dataclass
 class FillResult:
-    """What ``fill_missing`` did: frames tracked backwards / forwards, each one's ``process`` time, ms, and its
-    stages' (``PipelineOutput.timings_ms``); quality: each filled frame's (tangled, Abs mm) (``PipelineOutput``:
-    tangled cells or folded keypoints left, edge error), for comparing it with another solution of that frame."""
+    """What ``fill_missing`` did: frames tracked backwards / forwards, each one's index (frames), ``process``
+    time, ms, and stages' (``PipelineOutput.timings_ms``) in the order tracked; quality: each filled frame's
+    (tangled, Abs mm) (``PipelineOutput``: tangled cells or folded keypoints left, edge error), for comparing it
+    with another solution of that frame."""
 
     backward: int = 0
     forward: int = 0
+    frames: list[int] = field(default_factory=list)
     ms: list[float] = field(default_factory=list)
     stages: list[dict[str, float]] = field(default_factory=list)
     quality: dict[int, tuple[int, float]] = field(default_factory=dict)
@@ -123,6 +125,7 @@ def fill_missing(
             out = pipe.process(f.depth, f.arm_vertices, f.arm_triangles, f.tcp, f.closed, prepared=f.prepared,
                                tcp_rot=f.tcp_rot)
             res.ms.append(1e3 * (time.perf_counter() - t0))
+            res.frames.append(i)
             res.stages.append(out.timings_ms)
             if len(out.keypoints) == N:
                 X, g = out.keypoints, out.grasp_idx

@@ -174,8 +174,7 @@ class LivePipeline:
         self._d0: np.ndarray | None = None
         self._c0: np.ndarray | None = None  # the reference's decimated colour, when frames have one
         self._support: tuple[np.ndarray, float] | None = None  # the table plane in D0 (normal, offset m)
-        self._recent: deque[np.ndarray] = deque(maxlen=3)
-        self._recent_colour: deque[np.ndarray | None] = deque(maxlen=3)
+        self._recent: deque[tuple[np.ndarray, np.ndarray | None]] = deque(maxlen=3)  # (depth, colour or None)
         self._since_recent = 0
         self._sizes: deque[int] = deque(maxlen=self.init_stable_frames + 1)
         self._grasp_rejections = 0
@@ -436,14 +435,13 @@ class LivePipeline:
 
     def _references(self) -> np.ndarray:
         assert self._d0 is not None
-        refs = np.stack([self._d0, *self._recent])
+        refs = np.stack([self._d0, *(d for d, _ in self._recent)])
         return refs if self.kind == "2d" else far_where_no_return(refs, self.K_seg, self.seg_params)
 
     def _remember(self, depth: np.ndarray, colour: np.ndarray | None = None) -> None:
         self._since_recent += 1
         if self._since_recent >= self.reference_gap:
-            self._recent.append(depth)
-            self._recent_colour.append(None if colour is None else np.array(colour))
+            self._recent.append((depth, None if colour is None else np.array(colour)))
             self._since_recent = 0
 
     def _growing(self, n: int) -> bool:
@@ -554,11 +552,10 @@ class LivePipeline:
         if res.status == TrackStatus.LOST:
             # back to waiting: the recent frames (object elsewhere) become the references
             if self._recent:
-                self.set_reference(self._recent[0], self._recent_colour[0])
+                self.set_reference(*self._recent[0])
             else:
                 self.set_reference(depth, colour)
             self._recent.clear()
-            self._recent_colour.clear()
             self._sizes.clear()
             out = self._output("lost", res, seg.points, grid=topo.kind == "2d")
             return PipelineOutput(**{**out.__dict__, "topology": topology})
