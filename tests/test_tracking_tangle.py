@@ -11,6 +11,7 @@ from tracking.init import Topology, initialise
 from tracking.params import TrackingParams
 from tracking.segmentation import background_from_depths, segment_against_background
 from tracking.tangle import (
+    captured,
     chain_reversals,
     grid_symmetries,
     relift_chains,
@@ -136,6 +137,37 @@ def test_unfold_lays_a_folded_chain_out_in_order_along_itself() -> None:
     S = X * [0.5, 1.0, 1.0]  # a chain seen over half its length (the rest out of sight), folded at its end
     S[[7, 8]] = S[[8, 7]]
     assert unfold_chains(S, topo, P.fold_cos, P.fold_span_min) is None
+
+
+def _y(spacing: float = 0.04) -> tuple[np.ndarray, Topology]:
+    """A Y-shaped branched rope (10, 3) m: main rope 0..6 along x with its junction at 3, branch 3 -> 7, 8, 9
+    along y; chains end to end (the junction on each)."""
+    main = np.stack([np.arange(7) * spacing, np.zeros(7), np.zeros(7)], axis=1)
+    branch = main[3] + np.stack([np.zeros(3), np.arange(1, 4) * spacing, np.zeros(3)], axis=1)
+    chains = [np.array([0, 1, 2, 3]), np.array([3, 4, 5, 6]), np.array([3, 7, 8, 9])]
+    E = np.array([[a, b] for c in chains for a, b in zip(c[:-1], c[1:], strict=True)])
+    topo = Topology("1d", E, np.full(len(E), spacing), np.array([0, 6, 9, 3]), np.array([0, 0, 0, 1]), chains)
+    return np.concatenate([main, branch]), topo
+
+
+def test_a_keypoint_taken_by_another_part_of_the_rope_is_laid_out_again_whatever_the_span() -> None:
+    X, topo = _y()
+    reach = P.fold_capture * 0.04
+    # the branch's first keypoint lies on the main rope beside keypoint 4 and the rest of the branch is seen
+    # short (partly hidden): the chain 3 -> 7 -> 8 turns back at 7, and what is left spans under fold_span_min
+    Z = X.copy()
+    Z[7] = X[4] + [0.003, 0.0, 0.0]
+    Z[8], Z[9] = X[3] + [0.0, 0.03, 0.0], X[3] + [0.0, 0.06, 0.0]
+    assert chain_reversals(Z, topo.chains, P.fold_cos).tolist() == [7]
+    assert captured(Z, topo.chains, np.array([7]), reach).tolist() == [True]
+    assert unfold_chains(Z, topo, P.fold_cos, P.fold_span_min) is None  # not captured: the short span holds
+    U = unfold_chains(Z, topo, P.fold_cos, P.fold_span_min, reach)
+    assert U is not None and len(chain_reversals(U, topo.chains, P.fold_cos)) == 0
+    assert np.array_equal(U[:7], Z[:7]) and abs(U[7, 0] - X[3, 0]) < 1e-9  # back on the branch, the main kept
+    # a branch collapsed onto its own junction has not been taken by another part: the junction is on its chain
+    C = X.copy()
+    C[8] = X[3] + [0.0, 0.002, 0.0]
+    assert captured(C, topo.chains, np.array([8]), reach).tolist() == [False]
 
 
 def test_tracker_unfolds_a_folded_rope_and_reports_it() -> None:

@@ -127,6 +127,11 @@ class TrackingParams:
       fold_span_min: a folded chain is laid out again along itself only when its polyline without the fold
         spans at least this fraction of the chain's rest length (else the object's missing part is out of
         sight, e.g. a branch hanging towards the camera, and spacing the chain on what is seen compresses it).
+      fold_capture: a turned-back keypoint within this fraction of the median rest length of a keypoint of
+        another chain (one it is not on) has been captured by that part of the object: its chain is laid out
+        again whatever its span, and the solution from there is kept, if it has fewer folds, with an edge error
+        up to fold_capture_abs_mm (mm) even where the captured one's was lower (the captured keypoint fits its
+        edges along the other part better than the chain's true, partly hidden, shape does).
       grasp_gate_m: a TCP farther than this from every keypoint holds nothing, m (a hand hides the few
         centimetres of a held rope between its fingers: the end seen nearest to a TCP lies up to ~7 cm from it).
       hidden_reach: a keypoint out of sight (``tracking.geometry.hidden_behind``: a 1D one behind the arm, a
@@ -245,6 +250,8 @@ class TrackingParams:
     relift_span_tol: float = 0.06
     fold_cos: float = -0.5
     fold_span_min: float = 0.8
+    fold_capture: float = 0.5
+    fold_capture_abs_mm: float = 3.0
     grasp_gate_m: float = 0.08
     hidden_reach: float = 0.5
     hidden_bend: float = 0.1

@@ -110,6 +110,22 @@ def chain_reversals(X: np.ndarray, chains: list[np.ndarray], cos_max: float) -> 
     return np.concatenate(out) if out else np.zeros(0, np.int64)
 
 
+def captured(X: np.ndarray, chains: list[np.ndarray], idx: np.ndarray, reach: float) -> np.ndarray:
+    """Which keypoints idx (K,) int64 lie within reach (m) of a keypoint of a chain they are not on (K,) bool:
+    taken by another part of the object (a branch's first keypoint lying on the main rope beside the junction).
+    X: (N, 3) m; chains: keypoint index arrays, end to end (a junction is on each chain it ends)."""
+    idx = np.asarray(idx, np.int64)
+    out = np.zeros(len(idx), bool)
+    for i, k in enumerate(idx.tolist()):
+        own = [c for c in chains if k in c]
+        others = [c for c in chains if k not in c]
+        if not others:
+            continue
+        o = np.setdiff1d(np.concatenate(others), np.concatenate([*own, [k]]))  # a junction is on its own chain
+        out[i] = len(o) > 0 and float(np.linalg.norm(X[o] - X[k], axis=1).min()) < reach
+    return out
+
+
 def _chain_rests(topology: Topology) -> list[np.ndarray]:
     """Each chain's rest lengths (len(chain) - 1,) m, edge by edge along it."""
     rest = {(int(min(e)), int(max(e))): float(r) for e, r in zip(topology.edges, topology.rest, strict=True)}
@@ -125,12 +141,16 @@ def _spaced_along(poly: np.ndarray, r: np.ndarray) -> np.ndarray:
     return np.stack([np.interp(f * s[-1], s, poly[:, i]) for i in range(3)], axis=1)
 
 
-def unfold_chains(X: np.ndarray, topology: Topology, cos_max: float, min_span: float) -> np.ndarray | None:
+def unfold_chains(
+    X: np.ndarray, topology: Topology, cos_max: float, min_span: float, capture_m: float = 0.0,
+) -> np.ndarray | None:
     """Keypoints X (N, 3) m with every chain that turns back on itself (``chain_reversals``) laid out again
     along itself with the fold taken out: the turned-back keypoints dropped from the chain's polyline (until it
     has none), the chain's keypoints spaced on what is left in proportion to their rest lengths, its ends kept.
     A warm start for the solver, which a fold holds in a local minimum: its keypoints lie on the object, in the
-    wrong order, and the rest of the chain is stretched to make up the length the fold takes. None: no fold."""
+    wrong order, and the rest of the chain is stretched to make up the length the fold takes. A chain whose
+    polyline without the fold spans less than min_span of its rest length is left as it is, unless a dropped
+    keypoint was ``captured`` (within capture_m of another chain's keypoint). None: no fold."""
     out, changed = X.copy(), False
     for c, r in zip(topology.chains, _chain_rests(topology), strict=True):
         if len(c) < 3:
@@ -145,7 +165,7 @@ def unfold_chains(X: np.ndarray, topology: Topology, cos_max: float, min_span: f
         if keep.all():
             continue
         P = X[c[keep]]
-        if polyline_arc(P)[-1] < min_span * r.sum():
+        if polyline_arc(P)[-1] < min_span * r.sum() and not captured(X, topology.chains, c[~keep], capture_m).any():
             continue
         changed = True
         out[c] = _spaced_along(P, r)
@@ -215,6 +235,6 @@ def relift_chains(
 
 
 __all__ = [
-    "cell_corner_normals", "chain_reversals", "grid_symmetries", "relift_chains", "relift_grid", "tangled_cells",
-    "unfold_chains",
+    "captured", "cell_corner_normals", "chain_reversals", "grid_symmetries", "relift_chains", "relift_grid",
+    "tangled_cells", "unfold_chains",
 ]

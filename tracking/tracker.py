@@ -22,7 +22,7 @@ from tracking.metrics import chamfer_mm, edge_rmse_mm, segment_distances
 from tracking.params import TrackingParams
 from tracking.skeleton import LEAF
 from tracking.solver import adjacency, chain_neighbours, hop_neighbours, relax_hidden, solve_keypoints
-from tracking.tangle import chain_reversals, relift_chains, relift_grid, tangled_cells, unfold_chains
+from tracking.tangle import captured, chain_reversals, relift_chains, relift_grid, tangled_cells, unfold_chains
 
 
 class TrackStatus(str, Enum):
@@ -689,14 +689,18 @@ class Tracker:
         Returns (X, anchors matched, keypoints turned back left, repaired)."""
         assert self.topology is not None
         cos_max = self.params.fold_cos
-        bad = len(chain_reversals(X, self.topology.chains, cos_max))
+        bad_idx = chain_reversals(X, self.topology.chains, cos_max)
+        bad = len(bad_idx)
         if bad == 0:
             return X, matched, 0, False
         held = {}
         if tcp is not None:
             at = np.asarray(tcp, np.float64).reshape(-1, 3)
             held = {int(k): at[i] for i, k in enumerate(self.grasp_idx) if k >= 0 and i < len(at)}
-        starts = [unfold_chains(X, self.topology, cos_max, self.params.fold_span_min),
+        p = self.params
+        reach = p.fold_capture * float(np.median(self.topology.rest))
+        slack = p.fold_capture_abs_mm if captured(X, self.topology.chains, bad_idx, reach).any() else 0.0
+        starts = [unfold_chains(X, self.topology, cos_max, p.fold_span_min, reach),
                   relift_chains(X, self.topology, cloud, self.K, self.T, self.params, held)]
         edges, rest = self.topology.edges, self.topology.rest
         best = (X, matched, bad, False)
@@ -709,7 +713,7 @@ class Tracker:
             X2, m2 = again.X, again.matched
             bad2 = len(chain_reversals(X2, self.topology.chains, cos_max))
             abs2 = edge_rmse_mm(X2, edges, rest)
-            if bad2 < best[2] and abs2 <= abs_best:
+            if bad2 < best[2] and abs2 <= max(abs_best, slack):
                 best, abs_best = (X2, m2, bad2, True), abs2
         return best
 
