@@ -685,7 +685,9 @@ class Tracker:
         """A 1D solution X (N, 3) m checked for chains folded onto themselves; a folded one is solved again from
         its chains laid out without the fold (``unfold_chains``) and from chains laid along the frame's skeleton
         (``relift_chains``: a branch lost behind the rest of the object and seen again), the one with the fewest
-        keypoints turned back kept when there are fewer than before and its edge error is no larger.
+        keypoints turned back kept when there are fewer than before and its edge error is no larger (where a
+        turned-back keypoint was ``captured`` by another part of the object: no larger than
+        ``params.fold_capture_abs_mm`` either).
         Returns (X, anchors matched, keypoints turned back left, repaired)."""
         assert self.topology is not None
         cos_max = self.params.fold_cos
