@@ -689,9 +689,10 @@ class Tracker:
         turned-back keypoint was ``captured`` by another part of the object: no larger than
         ``params.fold_capture_abs_mm`` either).
         Returns (X, anchors matched, keypoints turned back left, repaired)."""
-        assert self.topology is not None
-        cos_max = self.params.fold_cos
-        bad_idx = chain_reversals(X, self.topology.chains, cos_max)
+        p, topo = self.params, self.topology
+        assert topo is not None
+        cos_max = p.fold_cos
+        bad_idx = chain_reversals(X, topo.chains, cos_max)
         bad = len(bad_idx)
         if bad == 0:
             return X, matched, 0, False
@@ -699,21 +700,20 @@ class Tracker:
         if tcp is not None:
             at = np.asarray(tcp, np.float64).reshape(-1, 3)
             held = {int(k): at[i] for i, k in enumerate(self.grasp_idx) if k >= 0 and i < len(at)}
-        p = self.params
-        reach = p.fold_capture * float(np.median(self.topology.rest))
-        slack = p.fold_capture_abs_mm if captured(X, self.topology.chains, bad_idx, reach).any() else 0.0
-        starts = [unfold_chains(X, self.topology, cos_max, p.fold_span_min, reach),
-                  relift_chains(X, self.topology, cloud, self.K, self.T, self.params, held)]
-        edges, rest = self.topology.edges, self.topology.rest
+        reach = p.fold_capture * float(np.median(topo.rest))
+        slack = p.fold_capture_abs_mm if captured(X, topo.chains, bad_idx, reach).any() else 0.0
+        starts = [unfold_chains(X, topo, cos_max, p.fold_span_min, reach),
+                  relift_chains(X, topo, cloud, self.K, self.T, p, held)]
+        edges, rest = topo.edges, topo.rest
         best = (X, matched, bad, False)
         abs_best = edge_rmse_mm(X, edges, rest)
         for X0 in starts:
             if X0 is None:
                 continue
-            again = track_frame(X0, self.topology, cloud, det, kinds, self.params, tcp, self.grasp_idx, X0, hidden,
-                                soft, recapture=recapture)
+            again = track_frame(X0, topo, cloud, det, kinds, p, tcp, self.grasp_idx, X0, hidden, soft,
+                                recapture=recapture)
             X2, m2 = again.X, again.matched
-            bad2 = len(chain_reversals(X2, self.topology.chains, cos_max))
+            bad2 = len(chain_reversals(X2, topo.chains, cos_max))
             abs2 = edge_rmse_mm(X2, edges, rest)
             if bad2 < best[2] and abs2 <= max(abs_best, slack):
                 best, abs_best = (X2, m2, bad2, True), abs2
