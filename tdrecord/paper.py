@@ -19,7 +19,7 @@ import numpy as np
 
 from tdcommon.transforms import invert_transform, matrix_to_pose7, pose7_to_matrix
 from tdcommon.types import CameraIntrinsics, RGBDFrame
-from tdrecord.codecs import ZLIB
+from tdrecord.codecs import INFLATE
 from tdrecord.sequence import (
     DEPTH_SCALE_MM,
     DatasetError,
@@ -57,7 +57,7 @@ def _read_npy_header(fp: IO[bytes], where: str) -> tuple[tuple[int, ...], bool, 
 
 
 class _Member:
-    """A stored or deflated zip member read as a stream, inflated with zlib-ng (``tdrecord.codecs.ZLIB``: ~2x
+    """A stored or deflated zip member read as a stream, inflated with ISA-L (``tdrecord.codecs.INFLATE``: ~3x
     zlib's speed on a test-bed depth array, the same bytes), one block in memory at a time; ``read()`` to its end
     compares the member's CRC-32 and raises ``zipfile.BadZipFile`` on a mismatch, ``zlib.error`` on data that does
     not inflate and ``EOFError`` on a file cut short, as ``zipfile``'s own stream does."""
@@ -75,32 +75,33 @@ class _Member:
         name_len, extra_len = struct.unpack("<HH", head[26:30])
         self._f.seek(info.header_offset + 30 + name_len + extra_len)
         self._left = info.compress_size
-        self._inflate = ZLIB.decompressobj(-15) if info.compress_type == zipfile.ZIP_DEFLATED else None
+        self._inflate = INFLATE.decompressobj(-15) if info.compress_type == zipfile.ZIP_DEFLATED else None
         self._crc = 0
         self._chunk, self._pos = b"", 0
         self._done = False
 
     def _more(self) -> bool:
         """Inflate the next block (at most ``_BLOCK`` bytes out: a colour array inflates 12x, and bounded blocks
-        stay in the cache, twice as fast); False at the member's end (its CRC checked there)."""
+        stay in the cache, twice as fast); False at the member's end (its CRC checked there). Once the input is
+        all read, the inflater is given nothing until its stream ends: it may still hold output (ISA-L does)."""
         if self._done:
             return False
-        tail = self._inflate.unconsumed_tail if self._inflate is not None else b""
-        if tail:
-            raw = tail
+        inflate = self._inflate
+        if inflate is not None and inflate.unconsumed_tail:
+            raw = inflate.unconsumed_tail
         else:
             raw = self._f.read(min(self._BLOCK, self._left)) if self._left > 0 else b""
             if self._left > 0 and not raw:
                 raise EOFError(f"{self._info.filename!r} ends {self._left} bytes early")
             self._left -= len(raw)
         try:
-            out = raw if self._inflate is None else self._inflate.decompress(raw, self._BLOCK)
-            end = self._left == 0 and (self._inflate is None or not self._inflate.unconsumed_tail)
-            if end and self._inflate is not None:
-                out += self._inflate.flush()
-        except ZLIB.error as e:
+            out = raw if inflate is None else inflate.decompress(raw, self._BLOCK)
+        except INFLATE.error as e:
             raise zlib.error(str(e)) from None
-        self._crc = ZLIB.crc32(out, self._crc)
+        end = self._left == 0 if inflate is None else inflate.eof
+        if not end and not raw and not out:
+            raise EOFError(f"{self._info.filename!r}: its compressed data ends before the end-of-stream marker")
+        self._crc = INFLATE.crc32(out, self._crc)
         self._chunk, self._pos = out, 0
         if end:
             self._done = True
