@@ -406,7 +406,7 @@ def cmd_track(args: argparse.Namespace) -> int:
         print(f"error: {bad}", file=sys.stderr)
         return 2
     raw, topo = result["raw"], result["topology"]
-    final = final_keypoints(raw, topo.rest, params)
+    final = final_keypoints(raw, topo, params)
     out = Path(args.out) if args.out else Path(args.input if Path(args.input).is_dir() else Path(args.input).parent)
     out.mkdir(parents=True, exist_ok=True)
     write_reference_npz(out / "3d_keypoints.npz", final, topo.edges, topo.rest)

@@ -81,7 +81,7 @@ def track_run(files: list[Path], tracking: Any) -> FinalKeypoints:  # noqa: ANN4
     params = tracking_params(tracking, category or None, seq.metadata.get("n_keypoints"))
     result = track_sequence(seq, params, DIMENSION.get(category), progress=False)
     raw, topo = result["raw"], result["topology"]
-    final = final_keypoints(raw, topo.rest, params)
+    final = final_keypoints(raw, topo, params)
     grasp = np.full((len(raw), 2), -1, dtype=np.int64)
     for i, g in enumerate(result.get("grasp") or []):
         if g is not None and len(g):

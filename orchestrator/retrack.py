@@ -172,7 +172,7 @@ def track_run(task: RunTask, progress: Any = None) -> dict[str, Any]:
 
     result = track_sequence(seq, task.params, DIMENSION.get(task.category or ""), progress=False, on_frame=tick)
     raw, topo = result["raw"], result["topology"]
-    final = final_keypoints(raw, topo.rest, task.params)
+    final = final_keypoints(raw, topo, task.params)
     grasp = np.full((len(raw), 2), -1, np.int64)
     for i, g in enumerate(result["grasp"]):
         if g is not None and len(g):

@@ -134,11 +134,54 @@ def test_smoothing():
     np.testing.assert_allclose(smooth_symmetric(jump, 5)[2:6, 0, 0], [0.2, 0.4, 0.6, 0.8])
     # a clip's final keypoints: frames never tracked stay NaN; the gate is params.smooth_gate median rest lengths
     raw = np.concatenate([np.full((1, 2, 3), np.nan), jump])
-    final = final_keypoints(raw, np.array([0.1]), replace(P, symmetric_window=5, smooth_gate=2.0))
+    def pair(rest: float) -> Topology:
+        return Topology("1d", np.array([[0, 1]]), np.array([rest]), np.array([0, 1]), np.zeros(2, np.int64),
+                        [np.arange(2)])
+
+    final = final_keypoints(raw, pair(0.1), replace(P, symmetric_window=5, smooth_gate=2.0))
     assert np.isnan(final[0]).all()
     np.testing.assert_allclose(final[1:, 0, 0], [0, 0, 0, 0, 1, 1, 1, 1])  # the jump: 10 rest lengths
-    final = final_keypoints(raw, np.array([1.0]), replace(P, symmetric_window=5, smooth_gate=2.0))
+    final = final_keypoints(raw, pair(1.0), replace(P, symmetric_window=5, smooth_gate=2.0))
     np.testing.assert_allclose(final[3:7, 0, 0], [0.2, 0.4, 0.6, 0.8])  # one rest length: a motion
+
+
+def test_respace_chains_spaces_keypoints_along_their_curve_as_their_rest_lengths():
+    from tracking.tracker import respace_chains
+
+    # a straight chain 0-1-2-3-4 with rest lengths 1, 1, 2, 2 (m), its keypoints bunched towards one end
+    E = np.array([[0, 1], [1, 2], [2, 3], [3, 4]])
+    rest = np.array([1.0, 1.0, 2.0, 2.0])
+    x = np.array([0.0, 0.5, 1.0, 1.5, 6.0])
+    X = np.zeros((2, 5, 3))
+    X[:, :, 0] = x
+    X[1, :, 1] = 1.0  # a second frame, moved sideways: each frame is spaced on its own
+    out = respace_chains(X, [np.arange(5)], E, rest, cap_m=10.0)
+    np.testing.assert_allclose(out[:, :, 0], [[0, 1, 2, 4, 6]] * 2)  # arcs in proportion 1 : 1 : 2 : 2
+    np.testing.assert_allclose(out[:, :, 1:], X[:, :, 1:])
+    # each keypoint moves at most cap_m towards its place; the chain's ends (a tip, a junction) never move
+    capped = respace_chains(X, [np.arange(5)], E, rest, cap_m=1.0)
+    np.testing.assert_allclose(capped[0, :, 0], [0, 1, 2, 2.5, 6])
+    # a chain bent at a right angle: the keypoints stay on its polyline
+    B = np.array([[[0.0, 0, 0], [0.2, 0, 0], [1.0, 0, 0], [1.0, 1.0, 0]]])
+    out = respace_chains(B, [np.arange(4)], E[:3], np.ones(3), cap_m=10.0)
+    np.testing.assert_allclose(out[0], [[0, 0, 0], [2 / 3, 0, 0], [1, 1 / 3, 0], [1, 1, 0]], atol=1e-12)
+
+
+def test_final_keypoints_respace_a_rope_not_a_grid():
+    from tracking.init import cloth_topology
+
+    E = np.array([[0, 1], [1, 2]])
+    rope = Topology("1d", E, np.array([0.1, 0.1]), np.array([0, 2]), np.zeros(2, np.int64), [np.arange(3)])
+    raw = np.zeros((3, 3, 3))
+    raw[:, :, 0] = [0.0, 0.05, 0.2]
+    final = final_keypoints(raw, rope, P)
+    np.testing.assert_allclose(final[:, :, 0], [[0.0, 0.1, 0.2]] * 3)
+    np.testing.assert_allclose(final_keypoints(raw, rope, replace(P, respace_cap=0.0)), raw)
+    G = np.stack(np.meshgrid(np.arange(3.0), np.arange(3.0)), -1).reshape(-1, 2) * 0.1
+    grid = cloth_topology(np.concatenate([G, np.zeros((9, 1))], 1), 3, 3)
+    uneven = np.repeat(np.concatenate([G, np.zeros((9, 1))], 1)[None], 2, axis=0)
+    uneven[:, 4, :2] += 0.03  # the middle keypoint off the grid's centre: a cloth keeps what the solve gave
+    np.testing.assert_allclose(final_keypoints(uneven, grid, P), uneven)
 
 
 def test_consistent_anchors_leave_a_torn_edge_free():
