@@ -57,7 +57,7 @@ def _read_npy_header(fp: IO[bytes], where: str) -> tuple[tuple[int, ...], bool, 
 
 
 class _Member:
-    """A stored or deflated zip member read as a stream, inflated with ISA-L (``tdrecord.codecs.INFLATE``: ~3x
+    """A stored or deflated zip member read as a stream, inflated with ISA-L (``tdrecord.codecs.INFLATE``: ~2.5x
     zlib's speed on a test-bed depth array, the same bytes), one block in memory at a time; ``read()`` to its end
     compares the member's CRC-32 and raises ``zipfile.BadZipFile`` on a mismatch, ``zlib.error`` on data that does
     not inflate and ``EOFError`` on a file cut short, as ``zipfile``'s own stream does."""
