@@ -165,10 +165,12 @@ class TrackingParams:
       causal_window, symmetric_window: moving-average windows, frames.
       smooth_gate: the symmetric average leaves out a pair of frames whose midpoint is farther than this many
         median rest lengths from the frame it smooths (a jump: ``tracker.smooth_symmetric``).
-      respace_cap: a 1D object's final keypoints are spaced along each chain's tracked curve in proportion to
-        their rest lengths (``tracker.respace_chains``: a rope does not stretch, and the solve leaves one edge
-        long and another short where the cloud pulls its keypoints along the rope), each moving at most this many
-        median rest lengths (a curve that detours across a gap is not followed far). 0: off.
+      respace_cap, respace_error: in a frame where the RMS of a chain's edge length errors exceeds respace_error
+        median rest lengths, a 1D object's final keypoints are spaced along that chain's tracked curve in
+        proportion to their rest lengths (``tracker.respace_chains``: a rope does not stretch, and the solve can
+        leave one edge long and another short where the cloud pulls keypoints along the rope, or beside a hand
+        that hides the rope), each moving at most respace_cap median rest lengths (a curve that detours across a
+        gap is not followed far). respace_cap 0: off.
       min_object_points: fewer segmented points than this is a bad frame.
       max_edge_rmse_m, max_chamfer_m: a frame with Abs or CD above these is bad, m.
       max_jump_m: a frame whose median keypoint displacement from the previous frame exceeds this
@@ -269,6 +271,7 @@ class TrackingParams:
     symmetric_window: int = 5
     smooth_gate: float = 2.0
     respace_cap: float = 0.5
+    respace_error: float = 0.1
     min_object_points: int = 30
     max_edge_rmse_m: float = 0.015
     max_chamfer_m: float = 0.015

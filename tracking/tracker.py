@@ -401,11 +401,13 @@ def smooth_symmetric(traj: np.ndarray, window: int, gate_m: float = np.inf) -> n
 
 
 def respace_chains(
-    X: np.ndarray, chains: list[np.ndarray], edges: np.ndarray, rest: np.ndarray, cap_m: float
+    X: np.ndarray, chains: list[np.ndarray], edges: np.ndarray, rest: np.ndarray, cap_m: float,
+    min_error_m: float = 0.0,
 ) -> np.ndarray:
     """Keypoints (T, N, 3) m with each chain's inner keypoints moved along the chain's polyline so that the arcs
     between consecutive keypoints are in proportion to their rest lengths (E,) m of edges (E, 2): the same curve,
-    its edges evenly strained. A chain's end keypoints (tips, junctions) stay; each keypoint moves at most cap_m.
+    its edges evenly strained. A chain's end keypoints (tips, junctions) stay; each keypoint moves at most cap_m;
+    a chain is left as it is in the frames where the RMS of its edges' length errors is at most min_error_m.
     chains: keypoint index arrays (``Topology.chains``), consecutive entries joined by an edge."""
     out = np.array(X, np.float64)
     lookup = {(int(a), int(b)): float(r) for (a, b), r in zip(np.asarray(edges).tolist(), rest, strict=True)}
@@ -424,6 +426,7 @@ def respace_chains(
         w = ((s - cum[t, k]) / np.maximum(seg[t, k], 1e-12))[..., None]
         move = P[t, k] * (1.0 - w) + P[t, k + 1] * w - P
         move[:, [0, -1]] = 0.0
+        move[np.sqrt(np.mean((seg - r) ** 2, axis=1)) <= min_error_m] = 0.0  # evenly enough strained already
         norm = np.linalg.norm(move, axis=-1, keepdims=True)
         out[:, chain] = P + move * np.minimum(1.0, cap_m / np.maximum(norm, 1e-12))
     return out
@@ -432,9 +435,9 @@ def respace_chains(
 def final_keypoints(raw: np.ndarray, topology: Topology, params: TrackingParams) -> np.ndarray:
     """A clip's final keypoints (T, N, 3) m from its raw track (T, N, 3) m (rows of NaN: frames never tracked,
     kept so): the tracked frames smoothed by ``smooth_symmetric`` over ``params.symmetric_window`` frames, not
-    across a jump of more than ``params.smooth_gate`` median rest lengths; a 1D object's then spaced along its
-    chains as their rest lengths are (``respace_chains``, moves of at most ``params.respace_cap`` median rest
-    lengths)."""
+    across a jump of more than ``params.smooth_gate`` median rest lengths; a 1D object's chains whose edge lengths
+    are off by more than ``params.respace_error`` median rest lengths (RMS) then spaced along their curves as their
+    rest lengths are (``respace_chains``, moves of at most ``params.respace_cap`` median rest lengths)."""
     final = np.array(raw, np.float64)
     ok = ~np.isnan(final).any(axis=(1, 2))
     rest = topology.rest
@@ -443,7 +446,8 @@ def final_keypoints(raw: np.ndarray, topology: Topology, params: TrackingParams)
         final[ok] = smooth_symmetric(final[ok], params.symmetric_window, gate)
         if topology.kind == "1d" and params.respace_cap > 0 and len(rest):
             final[ok] = respace_chains(final[ok], topology.chains, topology.edges, rest,
-                                       params.respace_cap * float(np.median(rest)))
+                                       params.respace_cap * float(np.median(rest)),
+                                       params.respace_error * float(np.median(rest)))
     return final
 
 
