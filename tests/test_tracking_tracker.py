@@ -146,28 +146,32 @@ def test_smoothing():
 
 
 def test_respace_chains_spaces_keypoints_along_their_curve_as_their_rest_lengths():
-    from tracking.tracker import respace_chains
+    from tracking.tangle import respace_chains
+
+    def chain(rest: np.ndarray) -> Topology:
+        n = len(rest) + 1
+        E = np.stack([np.arange(n - 1), np.arange(1, n)], 1)
+        return Topology("1d", E, rest, np.array([0, n - 1]), np.zeros(2, np.int64), [np.arange(n)])
 
     # a straight chain 0-1-2-3-4 with rest lengths 1, 1, 2, 2 (m), its keypoints bunched towards one end
-    E = np.array([[0, 1], [1, 2], [2, 3], [3, 4]])
     rest = np.array([1.0, 1.0, 2.0, 2.0])
     x = np.array([0.0, 0.5, 1.0, 1.5, 6.0])
     X = np.zeros((2, 5, 3))
     X[:, :, 0] = x
     X[1, :, 1] = 1.0  # a second frame, moved sideways: each frame is spaced on its own
-    out = out_all = respace_chains(X, [np.arange(5)], E, rest, cap_m=10.0)
+    out = out_all = respace_chains(X, chain(rest), cap_m=10.0)
     np.testing.assert_allclose(out[:, :, 0], [[0, 1, 2, 4, 6]] * 2)  # arcs in proportion 1 : 1 : 2 : 2
     np.testing.assert_allclose(out[:, :, 1:], X[:, :, 1:])
     # each keypoint moves at most cap_m towards its place; the chain's ends (a tip, a junction) never move
-    capped = respace_chains(X, [np.arange(5)], E, rest, cap_m=1.0)
+    capped = respace_chains(X, chain(rest), cap_m=1.0)
     np.testing.assert_allclose(capped[0, :, 0], [0, 1, 2, 2.5, 6])
     # a chain whose edges are off their rest lengths by at most min_error_m (RMS) in a frame is left so there
-    kept = respace_chains(X, [np.arange(5)], E, rest, cap_m=10.0, min_error_m=1.6)  # RMS 1.5 m
+    kept = respace_chains(X, chain(rest), cap_m=10.0, min_error_m=1.6)  # RMS 1.5 m
     np.testing.assert_allclose(kept, X)
-    np.testing.assert_allclose(respace_chains(X, [np.arange(5)], E, rest, cap_m=10.0, min_error_m=1.4), out_all)
+    np.testing.assert_allclose(respace_chains(X, chain(rest), cap_m=10.0, min_error_m=1.4), out_all)
     # a chain bent at a right angle: the keypoints stay on its polyline
     B = np.array([[[0.0, 0, 0], [0.2, 0, 0], [1.0, 0, 0], [1.0, 1.0, 0]]])
-    out = respace_chains(B, [np.arange(4)], E[:3], np.ones(3), cap_m=10.0)
+    out = respace_chains(B, chain(np.ones(3)), cap_m=10.0)
     np.testing.assert_allclose(out[0], [[0, 0, 0], [2 / 3, 0, 0], [1, 1 / 3, 0], [1, 1, 0]], atol=1e-12)
 
 

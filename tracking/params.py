@@ -167,7 +167,7 @@ class TrackingParams:
         median rest lengths from the frame it smooths (a jump: ``tracker.smooth_symmetric``).
       respace_cap, respace_error: in a frame where the RMS of a chain's edge length errors exceeds respace_error
         median rest lengths, a 1D object's final keypoints are spaced along that chain's tracked curve in
-        proportion to their rest lengths (``tracker.respace_chains``: a rope does not stretch, and the solve can
+        proportion to their rest lengths (``tangle.respace_chains``: a rope does not stretch, and the solve can
         leave one edge long and another short where the cloud pulls keypoints along the rope, or beside a hand
         that hides the rope), each moving at most respace_cap median rest lengths (a curve that detours across a
         gap is not followed far). respace_cap 0: off.

@@ -126,19 +126,39 @@ def captured(X: np.ndarray, chains: list[np.ndarray], idx: np.ndarray, reach: fl
     return out
 
 
-def _chain_rests(topology: Topology) -> list[np.ndarray]:
+def chain_rests(topology: Topology) -> list[np.ndarray]:
     """Each chain's rest lengths (len(chain) - 1,) m, edge by edge along it."""
     rest = {(int(min(e)), int(max(e))): float(r) for e, r in zip(topology.edges, topology.rest, strict=True)}
     return [np.array([rest[int(min(a, b)), int(max(a, b))] for a, b in zip(c[:-1], c[1:], strict=True)])
             for c in topology.chains]
 
 
-def _spaced_along(poly: np.ndarray, r: np.ndarray) -> np.ndarray:
+def spaced_along(poly: np.ndarray, r: np.ndarray) -> np.ndarray:
     """Points (len(r) + 1, 3) m along a polyline (M, 3) m from its start to its end, spaced in proportion to the
     rest lengths r (E,) m."""
     s = polyline_arc(poly)
     f = np.concatenate([[0.0], np.cumsum(r)]) / max(r.sum(), 1e-12)
     return np.stack([np.interp(f * s[-1], s, poly[:, i]) for i in range(3)], axis=1)
+
+
+def respace_chains(X: np.ndarray, topology: Topology, cap_m: float, min_error_m: float = 0.0) -> np.ndarray:
+    """Keypoints (T, N, 3) m with each chain's inner keypoints moved along the chain's polyline to where
+    ``spaced_along`` puts them (arcs in proportion to their rest lengths: the same curve, its edges evenly
+    strained). A chain's end keypoints (tips, junctions) stay; each keypoint moves at most cap_m; a chain is left
+    as it is in the frames where the RMS of its edges' length errors is at most min_error_m."""
+    out = np.array(X, np.float64)
+    for c, r in zip(topology.chains, chain_rests(topology), strict=True):
+        if len(c) < 3:
+            continue
+        for t in range(len(out)):
+            P = out[t, c]  # (n, 3) this frame's chain
+            if np.sqrt(np.mean((np.linalg.norm(np.diff(P, axis=0), axis=1) - r) ** 2)) <= min_error_m:
+                continue  # evenly enough strained already
+            move = spaced_along(P, r) - P
+            move[[0, -1]] = 0.0
+            norm = np.linalg.norm(move, axis=1, keepdims=True)
+            out[t, c] = P + move * np.minimum(1.0, cap_m / np.maximum(norm, 1e-12))
+    return out
 
 
 def unfold_chains(
@@ -152,7 +172,7 @@ def unfold_chains(
     polyline without the fold spans less than min_span of its rest length is left as it is, unless a dropped
     keypoint was ``captured`` (within capture_m of another chain's keypoint). None: no fold."""
     out, changed = X.copy(), False
-    for c, r in zip(topology.chains, _chain_rests(topology), strict=True):
+    for c, r in zip(topology.chains, chain_rests(topology), strict=True):
         if len(c) < 3:
             continue
         keep = np.ones(len(c), bool)
@@ -168,7 +188,7 @@ def unfold_chains(
         if polyline_arc(P)[-1] < min_span * r.sum() and not captured(X, topology.chains, c[~keep], capture_m).any():
             continue
         changed = True
-        out[c] = _spaced_along(P, r)
+        out[c] = spaced_along(P, r)
     return out if changed else None
 
 
@@ -220,7 +240,7 @@ def relift_chains(
     if best is None or len(links) != len(ends):
         return None
     out = X_prev.copy()
-    for c, r, (a, b) in zip(topology.chains, _chain_rests(topology), ends, strict=True):
+    for c, r, (a, b) in zip(topology.chains, chain_rests(topology), ends, strict=True):
         na, nb = best[slot[a]], best[slot[b]]
         poly = links[(min(na, nb), max(na, nb))]
         poly = poly if na < nb else poly[::-1]
@@ -230,7 +250,7 @@ def relift_chains(
             poly = np.concatenate([poly, held[b][None]])
         if abs(polyline_arc(poly)[-1] / r.sum() - 1.0) > params.relift_span_tol:
             return None
-        out[c] = _spaced_along(poly, r)
+        out[c] = spaced_along(poly, r)
     return out
 
 

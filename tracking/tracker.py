@@ -22,7 +22,15 @@ from tracking.metrics import chamfer_mm, edge_rmse_mm, segment_distances
 from tracking.params import TrackingParams
 from tracking.skeleton import LEAF
 from tracking.solver import adjacency, chain_neighbours, hop_neighbours, relax_hidden, solve_keypoints
-from tracking.tangle import captured, chain_reversals, relift_chains, relift_grid, tangled_cells, unfold_chains
+from tracking.tangle import (
+    captured,
+    chain_reversals,
+    relift_chains,
+    relift_grid,
+    respace_chains,
+    tangled_cells,
+    unfold_chains,
+)
 
 
 class TrackStatus(str, Enum):
@@ -400,38 +408,6 @@ def smooth_symmetric(traj: np.ndarray, window: int, gate_m: float = np.inf) -> n
     return acc / n[..., None]
 
 
-def respace_chains(
-    X: np.ndarray, chains: list[np.ndarray], edges: np.ndarray, rest: np.ndarray, cap_m: float,
-    min_error_m: float = 0.0,
-) -> np.ndarray:
-    """Keypoints (T, N, 3) m with each chain's inner keypoints moved along the chain's polyline so that the arcs
-    between consecutive keypoints are in proportion to their rest lengths (E,) m of edges (E, 2): the same curve,
-    its edges evenly strained. A chain's end keypoints (tips, junctions) stay; each keypoint moves at most cap_m;
-    a chain is left as it is in the frames where the RMS of its edges' length errors is at most min_error_m.
-    chains: keypoint index arrays (``Topology.chains``), consecutive entries joined by an edge."""
-    out = np.array(X, np.float64)
-    lookup = {(int(a), int(b)): float(r) for (a, b), r in zip(np.asarray(edges).tolist(), rest, strict=True)}
-    lookup.update({(b, a): r for (a, b), r in list(lookup.items())})
-    for chain in chains:
-        if len(chain) < 3:
-            continue
-        P = out[:, chain]  # (T, n, 3)
-        seg = np.linalg.norm(np.diff(P, axis=1), axis=-1)  # (T, n - 1)
-        cum = np.concatenate([np.zeros((len(P), 1)), np.cumsum(seg, axis=1)], axis=1)  # (T, n) arc at each keypoint
-        r = np.array([lookup[int(a), int(b)] for a, b in zip(chain[:-1], chain[1:], strict=True)])
-        frac = np.concatenate([[0.0], np.cumsum(r)]) / r.sum()  # (n,) where each keypoint belongs along the arc
-        s = frac[None, :] * cum[:, -1:]  # (T, n)
-        k = np.clip((cum[:, None, :] <= s[:, :, None]).sum(-1) - 1, 0, len(chain) - 2)  # (T, n) segment of each
-        t = np.arange(len(P))[:, None]
-        w = ((s - cum[t, k]) / np.maximum(seg[t, k], 1e-12))[..., None]
-        move = P[t, k] * (1.0 - w) + P[t, k + 1] * w - P
-        move[:, [0, -1]] = 0.0
-        move[np.sqrt(np.mean((seg - r) ** 2, axis=1)) <= min_error_m] = 0.0  # evenly enough strained already
-        norm = np.linalg.norm(move, axis=-1, keepdims=True)
-        out[:, chain] = P + move * np.minimum(1.0, cap_m / np.maximum(norm, 1e-12))
-    return out
-
-
 def final_keypoints(raw: np.ndarray, topology: Topology, params: TrackingParams) -> np.ndarray:
     """A clip's final keypoints (T, N, 3) m from its raw track (T, N, 3) m (rows of NaN: frames never tracked,
     kept so): the tracked frames smoothed by ``smooth_symmetric`` over ``params.symmetric_window`` frames, not
@@ -445,8 +421,7 @@ def final_keypoints(raw: np.ndarray, topology: Topology, params: TrackingParams)
         gate = params.smooth_gate * float(np.median(rest)) if len(rest) else np.inf
         final[ok] = smooth_symmetric(final[ok], params.symmetric_window, gate)
         if topology.kind == "1d" and params.respace_cap > 0 and len(rest):
-            final[ok] = respace_chains(final[ok], topology.chains, topology.edges, rest,
-                                       params.respace_cap * float(np.median(rest)),
+            final[ok] = respace_chains(final[ok], topology, params.respace_cap * float(np.median(rest)),
                                        params.respace_error * float(np.median(rest)))
     return final
 
