@@ -368,6 +368,7 @@ def cmd_track(args: argparse.Namespace) -> int:
     from orchestrator.worker import tracking_params
     from tdcommon.objects import DIMENSION
     from tdrecord import DatasetError, read_sequence, verify_sequence_files, write_reference_npz
+    from tracking.tangle import clip_tangles, frame_runs
     from tracking.tracker import final_keypoints
 
     try:
@@ -407,12 +408,15 @@ def cmd_track(args: argparse.Namespace) -> int:
         return 2
     raw, topo = result["raw"], result["topology"]
     final = final_keypoints(raw, topo, params)
+    tangled = clip_tangles(final, topo, params.fold_cos)  # flagged, not passed on as good frames
     out = Path(args.out) if args.out else Path(args.input if Path(args.input).is_dir() else Path(args.input).parent)
     out.mkdir(parents=True, exist_ok=True)
     write_reference_npz(out / "3d_keypoints.npz", final, topo.edges, topo.rest)
     np.savez_compressed(out / "3d_keypoints_raw.npz", raw=raw, edges=topo.edges, rest=topo.rest,
-                        anchors=topo.anchor_idx)
-    metrics = {**result["metrics"], "category": category, "output": str(out / "3d_keypoints.npz")}
+                        anchors=topo.anchor_idx, tangled=tangled)
+    metrics = {**result["metrics"], "output_tangled_frames": int((tangled > 0).sum()),
+               "output_tangled_runs": frame_runs(tangled > 0), "category": category,
+               "output": str(out / "3d_keypoints.npz")}
     (out / "tracking_metrics.json").write_text(json.dumps(metrics, indent=2))
     if args.json:
         print(json.dumps(metrics))

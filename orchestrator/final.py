@@ -9,12 +9,13 @@ fsynced, renamed over the original) with every record copied verbatim plus two c
 - ``/keypoints/final``  JSON Schema ``trackdeform.Keypoints`` (tdrecord.channels), one message per frame at
   the frame's log time: ``frame_number``, ``stamp`` (s, the frame's device stamp), ``keypoints`` [{x,y,z}] m
   world, ``edges`` [{i,j}], ``rest_lengths`` m, ``grasp_indices`` {left,right}, ``object``, ``category``,
-  ``status`` "final", ``window``;
+  ``status`` "final", ``window``, ``tangled`` (the frame's tangled grid cells or keypoints where a chain turns
+  back on itself, ``tracking.tangle.clip_tangles``: 0 for a good frame; such a frame is flagged, not hidden);
 - ``/keypoints/final/scene``  foxglove.SceneUpdate: the same as spheres and edge lines (entity
   ``keypoints_final``);
 
 and the ``episode`` metadata gains ``keypoints: ["live", "final"]`` and ``final_keypoints: {tracker, params,
-window, created, frames, run_files, software}``.
+window, created, frames, tangled_frames, run_files, software}``.
 
 The work runs in a child process at nice 10 (:class:`FinalTracker`, one run at a time, ``python -m
 orchestrator.final`` reading its job as JSON on stdin and printing its result as the last line of stdout), so
@@ -66,6 +67,7 @@ class FinalKeypoints:
     window: int
     params: dict[str, Any]
     metrics: dict[str, Any] = field(default_factory=dict)
+    tangled: np.ndarray | None = None  # (T,) int64 each frame's tangled cells / turned-back keypoints, 0: none
 
 
 def track_run(files: list[Path], tracking: Any) -> FinalKeypoints:  # noqa: ANN401 - TrackingConfig
@@ -74,6 +76,7 @@ def track_run(files: list[Path], tracking: Any) -> FinalKeypoints:  # noqa: ANN4
     from orchestrator.worker import tracking_params
     from tdcommon.objects import DIMENSION
     from tdrecord import read_episodes
+    from tracking.tangle import clip_tangles
     from tracking.tracker import final_keypoints
 
     seq = read_episodes(list(files))
@@ -82,6 +85,7 @@ def track_run(files: list[Path], tracking: Any) -> FinalKeypoints:  # noqa: ANN4
     result = track_sequence(seq, params, DIMENSION.get(category), progress=False)
     raw, topo = result["raw"], result["topology"]
     final = final_keypoints(raw, topo, params)
+    tangled = clip_tangles(final, topo, params.fold_cos)
     grasp = np.full((len(raw), 2), -1, dtype=np.int64)
     for i, g in enumerate(result.get("grasp") or []):
         if g is not None and len(g):
@@ -91,7 +95,7 @@ def track_run(files: list[Path], tracking: Any) -> FinalKeypoints:  # noqa: ANN4
         edges=np.asarray(topo.edges, dtype=np.int64), rest=np.asarray(topo.rest, dtype=np.float64),
         files=[Path(f) for f in files], frames_per_file=list(seq.metadata["frames_per_file"]),
         object=str(seq.metadata.get("object") or ""), category=category, window=int(params.symmetric_window),
-        params=_jsonable(asdict(params)), metrics=_jsonable(result["metrics"]),
+        params=_jsonable(asdict(params)), metrics=_jsonable(result["metrics"]), tangled=tangled,
     )
 
 
@@ -120,6 +124,7 @@ def final_message(fk: FinalKeypoints, i: int, stamp: float) -> dict[str, Any]:
         "edges": fk.edges.tolist(), "rest_lengths": np.round(fk.rest, 6).tolist(),
         "grasp_indices": {"left": int(fk.grasp[i, 0]), "right": int(fk.grasp[i, 1])},
         "object": fk.object, "category": fk.category, "status": "final", "window": fk.window,
+        "tangled": 0 if fk.tangled is None else int(fk.tangled[i]),
     }
 
 
@@ -271,8 +276,10 @@ def _finalize_locked(files: list[Path], tracking: Any, software: str) -> dict[st
         return {"status": "failed", "reason": str(e), "episodes": [f.name for f in files], "frames": 0,
                 "frames_with_final": 0, "seconds": round(time.monotonic() - t0, 2)}
     created = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    n_tangled = 0 if fk.tangled is None else int((fk.tangled > 0).sum())
     info = {"tracker": TRACKER_NAME, "params": fk.params, "window": fk.window, "created": created,
-            "frames": len(fk.keypoints), "run_files": [f.name for f in files], "software": software}
+            "frames": len(fk.keypoints), "tangled_frames": n_tangled, "run_files": [f.name for f in files],
+            "software": software}
     done = 0
     offsets = np.concatenate([[0], np.cumsum(fk.frames_per_file)]).astype(int)
     per_file = []
@@ -281,7 +288,8 @@ def _finalize_locked(files: list[Path], tracking: Any, software: str) -> dict[st
         per_file.append({"file": f.name, "frames": int(offsets[k + 1] - offsets[k]), "final": n})
         done += n
     return {"status": "done", "episodes": [f.name for f in files], "frames": int(offsets[-1]),
-            "frames_with_final": done, "per_file": per_file, "window": fk.window, "created": created,
+            "frames_with_final": done, "tangled_frames": n_tangled, "per_file": per_file, "window": fk.window,
+            "created": created,
             "metrics": {k: v for k, v in fk.metrics.items() if k != "statuses"},
             "seconds": round(time.monotonic() - t0, 2)}
 

@@ -99,7 +99,8 @@ class Landing:
         self._submitted: list[tuple[dict[str, Any], list[Path]]] = []
         self.tracker = FinalTracker(self.out_dir, config.tracking, software) if self.enabled else None
         self.summary.final_keypoints = {"enabled": self.enabled, "runs_done": 0, "runs_failed": 0,
-                                        "runs_pending": 0, "episodes": 0, "frames": 0, "frames_with_final": 0}
+                                        "runs_pending": 0, "episodes": 0, "frames": 0, "frames_with_final": 0,
+                                        "tangled_frames": 0}
         if self.tracker is not None:
             resumed = pending_runs(journal.records, self.out_dir)
             for run, files in resumed:
@@ -165,7 +166,8 @@ class Landing:
         self._submitted = [(r, fs) for r, fs in self._submitted if fs != files]
         rec = {"type": "final", **run, "status": result.get("status", "failed"), "reason": result.get("reason"),
                "episodes": [f.name for f in files], "frames": result.get("frames", 0),
-               "frames_with_final": result.get("frames_with_final", 0), "window": result.get("window"),
+               "frames_with_final": result.get("frames_with_final", 0),
+               "tangled_frames": result.get("tangled_frames", 0), "window": result.get("window"),
                "seconds": result.get("seconds"), "finished": now_iso()}
         self.journal.append(rec)
         fk = self.summary.final_keypoints
@@ -174,6 +176,7 @@ class Landing:
             fk["episodes"] += len(files)
             fk["frames"] += int(rec["frames"] or 0)
             fk["frames_with_final"] += int(rec["frames_with_final"] or 0)
+            fk["tangled_frames"] = fk.get("tangled_frames", 0) + int(rec["tangled_frames"] or 0)
             self.manifest.add(files, refresh=True)
         else:  # failed: never initialised (kept); error: tried again by the next session on the folder
             fk["runs_failed"] += 1

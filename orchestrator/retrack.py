@@ -8,7 +8,7 @@ average). Tasks run in local worker processes (spawn) or, with ``--ray-address``
 Results are a new keypoint *version* beside the episodes, which are only read::
 
     SESSION/keypoints/<version>/version.json           tracker version, tracking settings, created
-    SESSION/keypoints/<version>/episode_NNNNNN.npz     one per episode (keys in NPZ_KEYS)
+    SESSION/keypoints/<version>/episode_NNNNNN.npz     one per episode (keys in NPZ_KEYS, and ``tangled``)
     SESSION/keypoints/<version>/retrack.jsonl          progress journal: one record per run tracked
 
 Every file is written to a temporary name, fsynced and renamed, so a killed retrack leaves only whole
@@ -160,6 +160,7 @@ def track_run(task: RunTask, progress: Any = None) -> dict[str, Any]:
     from orchestrator.cli_tracking import track_sequence
     from tdcommon.objects import DIMENSION
     from tdrecord import read_episodes
+    from tracking.tangle import clip_tangles
     from tracking.tracker import final_keypoints
 
     t0, c0 = time.monotonic(), time.process_time()
@@ -173,6 +174,7 @@ def track_run(task: RunTask, progress: Any = None) -> dict[str, Any]:
     result = track_sequence(seq, task.params, DIMENSION.get(task.category or ""), progress=False, on_frame=tick)
     raw, topo = result["raw"], result["topology"]
     final = final_keypoints(raw, topo, task.params)
+    tangled = clip_tangles(final, topo, task.params.fold_cos)
     grasp = np.full((len(raw), 2), -1, np.int64)
     for i, g in enumerate(result["grasp"]):
         if g is not None and len(g):
@@ -182,7 +184,8 @@ def track_run(task: RunTask, progress: Any = None) -> dict[str, Any]:
     for k, s in enumerate(seqs):
         a, b = offsets[k], offsets[k + 1]
         episodes.append({"name": Path(s.source).name, "frame_numbers": np.asarray(s.frame_numbers, np.int64),
-                         "keypoints": final[a:b], "raw": raw[a:b], "grasp_indices": grasp[a:b]})
+                         "keypoints": final[a:b], "raw": raw[a:b], "grasp_indices": grasp[a:b],
+                         "tangled": tangled[a:b]})
     return {"episodes": episodes, "edges": np.asarray(topo.edges, np.int64), "rest_lengths": np.asarray(topo.rest),
             "metrics": result["metrics"], "frames": int(len(raw)), "wall_s": time.monotonic() - t0,
             "cpu_s": time.process_time() - c0}
@@ -288,7 +291,8 @@ def write_result(folder: Path, task: RunTask, result: dict[str, Any]) -> list[st
     for ep_path, ep in zip(task.episodes, result["episodes"], strict=True):
         arrays = {"frame_numbers": ep["frame_numbers"], "keypoints": ep["keypoints"], "raw": ep["raw"],
                   "edges": result["edges"], "rest_lengths": result["rest_lengths"],
-                  "grasp_indices": ep["grasp_indices"], "episode_bytes": np.int64(Path(ep_path).stat().st_size)}
+                  "grasp_indices": ep["grasp_indices"], "episode_bytes": np.int64(Path(ep_path).stat().st_size),
+                  "tangled": ep["tangled"]}
         out = folder / (Path(ep_path).stem + ".npz")
         _write_atomic(out, lambda f, a=arrays: np.savez_compressed(f, **a))
         names.append(out.name)

@@ -78,6 +78,8 @@ class SessionSummary:
         if fk.get("enabled"):
             lines.append(f"final keypoints  : {fk['runs_done']} run(s), {fk['frames_with_final']} of {fk['frames']} "
                          f"frames of {fk['episodes']} episode(s)"
+                         + (f"; {fk['tangled_frames']} frame(s) flagged tangled (a grid folded over itself or a "
+                            f"chain turned back: `tangled` in /keypoints/final)" if fk.get("tangled_frames") else "")
                          + (f"; {fk['runs_failed']} run(s) failed" if fk["runs_failed"] else "")
                          + (f"; {fk['runs_pending']} run(s) pending (the next session on the folder tracks them)"
                             if fk["runs_pending"] else ""))

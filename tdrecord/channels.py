@@ -81,7 +81,9 @@ SCHEMAS: dict[str, dict[str, Any]] = {
          "grasp_indices": {"type": "object", "description": "keypoint held by each gripper, -1 none",
                            "properties": {"left": _INT, "right": _INT}},
          "object": _STR, "category": {"type": "string", "description": "dlo, bdlo or cloth"},
-         "status": {"type": "string", "description": "init, tracking or lost"},
+         "status": {"type": "string", "description": "init, tracking or lost (live); final"},
+         "tangled": {"type": "integer", "description": "final: tangled grid cells or keypoints where a chain turns "
+                                                       "back on itself, 0 none"},
          "abs_mm": {"type": "number", "description": "mean keypoint-to-cloud distance, mm"},
          "cd_mm": {"type": "number", "description": "Chamfer distance, mm"},
          "anchors": _array(_INT, "keypoints anchored this frame"),

@@ -123,6 +123,10 @@ def test_offline_track_writes_reference_npz(demo_10s_track: tuple[Path, dict]) -
     assert metrics["tracked_ms_per_frame_median"] > 0 and metrics["fill_ms_per_frame_median"] > 0
     ref = np.load(out / "3d_keypoints.npz")
     assert ref["full"].shape == (300, 20, 3) and ref["edge_connection"].shape == (19, 2)
+    # the output's frames still folded are flagged (per frame in the raw file, as runs in the metrics)
+    tangled = np.load(out / "3d_keypoints_raw.npz")["tangled"]
+    assert tangled.shape == (300,) and metrics["output_tangled_frames"] == int((tangled > 0).sum())
+    assert sum(b - a + 1 for a, b in metrics["output_tangled_runs"]) == metrics["output_tangled_frames"]
     assert 5.0 < np.nanmedian(ref["reference_lengths"]) < 60.0  # millimetres
 
 

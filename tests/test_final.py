@@ -6,6 +6,7 @@ import json
 import shutil
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -119,7 +120,7 @@ def test_final_keypoints_rewrite_copies_every_record(tmp_path: Path) -> None:
     frames = [0, 1, 2, 3, 4, 5]
     _write(path, frames, color="h264")
     before = _messages(path)
-    fk = _final(frames, [path])
+    fk = replace(_final(frames, [path]), tangled=np.array([0, 0, 3, 1, 0, 0]))
     assert rewrite_episode(path, fk, {"keypoints": ["live", "final"], "final_keypoints": {"window": 5}}) == len(frames)
     assert rewrite_episode(path, fk, {"keypoints": ["live", "final"], "final_keypoints": {"window": 5}}) == len(frames)
     assert not list(tmp_path.glob(f"*{TMP_SUFFIX}"))
@@ -130,6 +131,8 @@ def test_final_keypoints_rewrite_copies_every_record(tmp_path: Path) -> None:
     assert sum(m[0] == "/keypoints/final/scene" for m in after) == len(frames)
     colour_times = [m[1] for m in before if m[0] == "/cam/cam0/color"]
     assert [m[1] for m in after if m[0] == "/keypoints/final"] == colour_times  # at each frame's log time
+    # a tangled frame is flagged in its message, not passed on as a good one
+    assert [json.loads(m[4])["tangled"] for m in after if m[0] == "/keypoints/final"] == [0, 0, 3, 1, 0, 0]
     ep = load_episode(path)
     np.testing.assert_allclose(ep.keypoints_final, fk.keypoints)
     assert ep.grasp_indices.tolist() == [[1, 2]] * len(frames)
@@ -253,6 +256,7 @@ def test_sim_time_demo_every_frame_has_final_keypoints_and_resumes(demo_final_re
               if json.loads(line).get("type") == "final"]
     assert sorted(e for r in finals for e in r["episodes"]) == [p.name for p in files]
     assert all(r["status"] == "done" and r["frames_with_final"] == r["frames"] for r in finals)
+    assert all(0 <= r["tangled_frames"] <= r["frames"] for r in finals)  # frames flagged tangled, counted
     entries = read_manifest(out)
     assert [e["file"] for e in entries] == [p.name for p in files]
     assert all(e["keypoints"] == ["live", "final"] for e in entries)
@@ -295,3 +299,15 @@ def test_landing_journals_final_records_and_pending_on_stop(tmp_path: Path) -> N
         assert not list(tmp_path.glob(f"*{TMP_SUFFIX}"))
     finally:
         journal.close()
+
+
+def test_the_summary_says_how_many_final_frames_are_flagged_tangled(tmp_path: Path) -> None:
+    from orchestrator.summary import SessionSummary
+
+    summary = SessionSummary(tmp_path)
+    fk = {"enabled": True, "runs_done": 1, "runs_failed": 0, "runs_pending": 0, "episodes": 2, "frames": 300,
+          "frames_with_final": 300, "tangled_frames": 0}
+    summary.final_keypoints = dict(fk)
+    assert "final keypoints  : 1 run(s), 300 of 300 frames of 2 episode(s)\n" in summary.text() + "\n"
+    summary.final_keypoints = {**fk, "tangled_frames": 12}
+    assert "; 12 frame(s) flagged tangled" in summary.text()

@@ -13,6 +13,8 @@ from tracking.segmentation import background_from_depths, segment_against_backgr
 from tracking.tangle import (
     captured,
     chain_reversals,
+    clip_tangles,
+    frame_runs,
     grid_symmetries,
     relift_chains,
     relift_grid,
@@ -121,6 +123,22 @@ def test_a_bent_chain_does_not_turn_back_and_a_z_fold_does() -> None:
     Z = X.copy()
     Z[[3, 4]] = X[[4, 3]]  # keypoints 3 and 4 in the wrong order along the rope: the chain runs 2 -> 4 -> 3 -> 5
     assert sorted(chain_reversals(Z, topo.chains, P.fold_cos).tolist()) == [3, 4]
+
+
+def test_a_clips_tangled_frames_are_counted_frame_by_frame() -> None:
+    X, topo = _chain()
+    Z = X.copy()
+    Z[[3, 4]] = X[[4, 3]]
+    gap = np.full_like(X, np.nan)  # a frame without keypoints is not counted
+    assert clip_tangles(np.stack([X, Z, Z, gap, X, Z]), topo, P.fold_cos).tolist() == [0, 2, 2, 0, 0, 2]
+    assert frame_runs(np.array([0, 2, 2, 0, 0, 2]) > 0) == [[1, 2], [5, 5]]
+    assert frame_runs(np.zeros(4, bool)) == []
+    E = np.array([[i, i + 1] for i in range(R * C) if (i + 1) % C] + [[i, i + C] for i in range(R * C - C)])
+    grid = Topology("2d", E, np.full(len(E), 0.06), np.zeros(0, np.int64), np.zeros(0, np.int64), [], (R, C))
+    bad = _grid()
+    bad[7] = bad[14] + [0.01, 0.01, 0.0]
+    assert clip_tangles(np.stack([_grid(), bad]), grid, P.fold_cos).tolist() == [0, int(tangled_cells(bad, R, C).sum())]
+    assert tangled_cells(bad, R, C).sum() > 0
 
 
 def test_unfold_lays_a_folded_chain_out_in_order_along_itself() -> None:

@@ -110,6 +110,28 @@ def chain_reversals(X: np.ndarray, chains: list[np.ndarray], cos_max: float) -> 
     return np.concatenate(out) if out else np.zeros(0, np.int64)
 
 
+def clip_tangles(X: np.ndarray, topology: Topology, cos_max: float) -> np.ndarray:
+    """(T,) int64: how tangled each frame of keypoints X (T, N, 3) m is, as the tracker checks a frame: a grid's
+    tangled cells (``tangled_cells``), a 1D object's keypoints where a chain turns back by more than cos_max allows
+    (``chain_reversals``); 0 for a frame with a missing (NaN) keypoint. The offline output flags such frames
+    (``trackdeform track``, an episode's final keypoints) instead of passing them on as good ones."""
+    X = np.asarray(X, np.float64)
+    out = np.zeros(len(X), np.int64)
+    for t in np.flatnonzero(np.isfinite(X).all(axis=(1, 2))):
+        if topology.grid_shape is not None:
+            out[t] = int(tangled_cells(X[t], *topology.grid_shape).sum())
+        else:
+            out[t] = len(chain_reversals(X[t], topology.chains, cos_max))
+    return out
+
+
+def frame_runs(flags: np.ndarray) -> list[list[int]]:
+    """The runs of consecutive True frames of flags (T,) bool as [first, last] frame pairs (inclusive)."""
+    f = np.concatenate([[False], np.asarray(flags, bool), [False]])
+    d = np.flatnonzero(np.diff(f.astype(np.int8)))
+    return [[int(a), int(b) - 1] for a, b in zip(d[::2], d[1::2], strict=True)]
+
+
 def captured(X: np.ndarray, chains: list[np.ndarray], idx: np.ndarray, reach: float) -> np.ndarray:
     """Which keypoints idx (K,) int64 lie within reach (m) of a keypoint of a chain they are not on (K,) bool:
     taken by another part of the object (a branch's first keypoint lying on the main rope beside the junction).
