@@ -395,6 +395,19 @@ VARIANTS: list[dict[str, Any]] = [
          camera=[1.5, -0.6, 0.95, 0.45, -0.45, 0.2], branch_len=0.27, radius=0.0047, rgb=[0.95, 0.95, 0.95]),
     dict(name="cloth_medium_g316", obj="cloth", speed="medium", seconds=5, seed=316,
          camera=[1.3, -0.2, 1.4, 0.45, -0.45, 0.15], rgb=[0.85, 0.4, 0.3]),
+    # generated in session 40, at camera poses no other row uses, and scored before any change
+    dict(name="rope_medium_h331", obj="rope", speed="medium", seconds=5, seed=331,
+         camera=[1.0, -0.15, 1.25, 0.45, -0.45, 0.15], length=0.92, radius=0.0044, rgb=[0.3, 0.9, 0.4]),
+    dict(name="bdlo_slow_h332", obj="bdlo", speed="slow", seconds=5, seed=332,
+         camera=[1.6, -0.1, 1.3, 0.45, -0.45, 0.15], branch_len=0.25, radius=0.0065, rgb=[0.9, 0.5, 0.1]),
+    dict(name="cloth_fast_h333", obj="cloth", speed="fast", seconds=5, seed=333,
+         camera=[1.2, -0.8, 1.05, 0.45, -0.45, 0.2], rgb=[0.3, 0.7, 0.5]),
+    dict(name="rope_fast_h334", obj="rope", speed="fast", seconds=5, seed=334,
+         camera=[1.45, 0.05, 1.5, 0.45, -0.45, 0.15], length=0.81, radius=0.0063, rgb=[0.8, 0.2, 0.2]),
+    dict(name="bdlo_medium_h335", obj="bdlo", speed="medium", seconds=5, seed=335,
+         camera=[1.15, -0.45, 0.95, 0.45, -0.45, 0.2], branch_len=0.2, radius=0.005, rgb=[0.5, 0.9, 0.9]),
+    dict(name="cloth_slow_h336", obj="cloth", speed="slow", seconds=5, seed=336,
+         camera=[1.7, -0.6, 1.4, 0.45, -0.45, 0.15], rgb=[0.6, 0.6, 0.2]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
