@@ -368,7 +368,8 @@ def cmd_track(args: argparse.Namespace) -> int:
     from orchestrator.worker import tracking_params
     from tdcommon.objects import DIMENSION
     from tdrecord import DatasetError, read_sequence, verify_sequence_files, write_reference_npz
-    from tracking.tangle import clip_tangles, frame_runs
+    from tracking.offline import gaps
+    from tracking.tangle import clip_tangles
     from tracking.tracker import final_keypoints
 
     try:
@@ -415,7 +416,7 @@ def cmd_track(args: argparse.Namespace) -> int:
     np.savez_compressed(out / "3d_keypoints_raw.npz", raw=raw, edges=topo.edges, rest=topo.rest,
                         anchors=topo.anchor_idx, tangled=tangled)
     metrics = {**result["metrics"], "output_tangled_frames": int((tangled > 0).sum()),
-               "output_tangled_runs": frame_runs(tangled > 0), "category": category,
+               "output_tangled_runs": [[a, b - 1] for a, b in gaps(tangled == 0)], "category": category,
                "output": str(out / "3d_keypoints.npz")}
     (out / "tracking_metrics.json").write_text(json.dumps(metrics, indent=2))
     if args.json:

@@ -176,7 +176,7 @@ class Landing:
             fk["episodes"] += len(files)
             fk["frames"] += int(rec["frames"] or 0)
             fk["frames_with_final"] += int(rec["frames_with_final"] or 0)
-            fk["tangled_frames"] = fk.get("tangled_frames", 0) + int(rec["tangled_frames"] or 0)
+            fk["tangled_frames"] += int(rec["tangled_frames"] or 0)
             self.manifest.add(files, refresh=True)
         else:  # failed: never initialised (kept); error: tried again by the next session on the folder
             fk["runs_failed"] += 1

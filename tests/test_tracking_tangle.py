@@ -8,13 +8,13 @@ import pytest
 from tdcommon.meshes import sheet_mesh
 from tracking import synthetic as S
 from tracking.init import Topology, initialise
+from tracking.offline import gaps
 from tracking.params import TrackingParams
 from tracking.segmentation import background_from_depths, segment_against_background
 from tracking.tangle import (
     captured,
     chain_reversals,
     clip_tangles,
-    frame_runs,
     grid_symmetries,
     relift_chains,
     relift_grid,
@@ -131,8 +131,9 @@ def test_a_clips_tangled_frames_are_counted_frame_by_frame() -> None:
     Z[[3, 4]] = X[[4, 3]]
     gap = np.full_like(X, np.nan)  # a frame without keypoints is not counted
     assert clip_tangles(np.stack([X, Z, Z, gap, X, Z]), topo, P.fold_cos).tolist() == [0, 2, 2, 0, 0, 2]
-    assert frame_runs(np.array([0, 2, 2, 0, 0, 2]) > 0) == [[1, 2], [5, 5]]
-    assert frame_runs(np.zeros(4, bool)) == []
+    runs = [[a, b - 1] for a, b in gaps(np.array([0, 2, 2, 0, 0, 2]) == 0)]  # as trackdeform track reports them
+    assert runs == [[1, 2], [5, 5]]
+    assert gaps(np.ones(4, bool)) == []
     E = np.array([[i, i + 1] for i in range(R * C) if (i + 1) % C] + [[i, i + C] for i in range(R * C - C)])
     grid = Topology("2d", E, np.full(len(E), 0.06), np.zeros(0, np.int64), np.zeros(0, np.int64), [], (R, C))
     bad = _grid()

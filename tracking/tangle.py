@@ -125,13 +125,6 @@ def clip_tangles(X: np.ndarray, topology: Topology, cos_max: float) -> np.ndarra
     return out
 
 
-def frame_runs(flags: np.ndarray) -> list[list[int]]:
-    """The runs of consecutive True frames of flags (T,) bool as [first, last] frame pairs (inclusive)."""
-    f = np.concatenate([[False], np.asarray(flags, bool), [False]])
-    d = np.flatnonzero(np.diff(f.astype(np.int8)))
-    return [[int(a), int(b) - 1] for a, b in zip(d[::2], d[1::2], strict=True)]
-
-
 def captured(X: np.ndarray, chains: list[np.ndarray], idx: np.ndarray, reach: float) -> np.ndarray:
     """Which keypoints idx (K,) int64 lie within reach (m) of a keypoint of a chain they are not on (K,) bool:
     taken by another part of the object (a branch's first keypoint lying on the main rope beside the junction).
