@@ -408,6 +408,20 @@ VARIANTS: list[dict[str, Any]] = [
          camera=[1.15, -0.45, 0.95, 0.45, -0.45, 0.2], branch_len=0.2, radius=0.005, rgb=[0.5, 0.9, 0.9]),
     dict(name="cloth_slow_h336", obj="cloth", speed="slow", seconds=5, seed=336,
          camera=[1.7, -0.6, 1.4, 0.45, -0.45, 0.15], rgb=[0.6, 0.6, 0.2]),
+    # generated in session 41, at camera poses no other row uses, and scored before any change (seed 342 put a
+    # waypoint of the fast branched-rope program out of the right arm's reach)
+    dict(name="rope_slow_e341", obj="rope", speed="slow", seconds=5, seed=341,
+         camera=[1.4, -0.55, 1.15, 0.45, -0.45, 0.2], length=0.88, radius=0.0047, rgb=[0.9, 0.9, 0.3]),
+    dict(name="bdlo_fast_e347", obj="bdlo", speed="fast", seconds=5, seed=347,
+         camera=[1.25, 0.1, 1.35, 0.45, -0.45, 0.15], branch_len=0.23, radius=0.006, rgb=[0.2, 0.5, 0.9]),
+    dict(name="cloth_medium_e343", obj="cloth", speed="medium", seconds=5, seed=343,
+         camera=[1.45, -0.4, 1.1, 0.45, -0.45, 0.2], rgb=[0.9, 0.6, 0.3]),
+    dict(name="rope_medium_e344", obj="rope", speed="medium", seconds=5, seed=344,
+         camera=[1.65, -0.35, 1.2, 0.45, -0.45, 0.15], length=0.99, radius=0.0057, rgb=[0.6, 0.2, 0.8]),
+    dict(name="bdlo_slow_e345", obj="bdlo", speed="slow", seconds=5, seed=345,
+         camera=[1.05, -0.55, 1.15, 0.45, -0.45, 0.2], branch_len=0.29, radius=0.0043, rgb=[0.9, 0.3, 0.3]),
+    dict(name="cloth_fast_e346", obj="cloth", speed="fast", seconds=5, seed=346,
+         camera=[1.35, -0.1, 1.2, 0.45, -0.45, 0.2], rgb=[0.3, 0.4, 0.8]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
