@@ -752,3 +752,32 @@ def test_behind_nearest_occluder_moves_a_point_the_camera_would_see_behind_the_a
     r, c, inside, z = pixels_of(X[:1], K, np.eye(4), depth.shape)
     assert inside[0] and c[0] == 340 and z[0] == pytest.approx(0.8)  # the finger's nearest pixel, same depth
     assert not in_open_space(X[:1], depth, K, np.eye(4), 0.02)[0]
+
+
+def test_a_free_tips_sparse_continuation_is_kept_and_nothing_beside_it():
+    # a branch pointing away from the camera lifts to single points ~2 cm apart beyond where its tip was: DBSCAN
+    # calls them noise and they are farther than track_attach_m from the previous object; chained to the tip
+    # inside its cone they are kept, a point beside the cone, one beyond the reach and one past a gap are not
+    from tracking.segmentation import dbscan_labels, select_clusters_near, tip_continuations
+    from tracking.tracker import free_tips
+
+    rng = np.random.default_rng(1)
+    body = rng.uniform([0.0, 0.0, 0.0], [0.3, 0.012, 0.012], (400, 3))
+    tip = np.array([0.3, 0.006, 0.006])
+    beyond = tip + np.array([[0.02, 0.0, 0.0], [0.04, 0.002, 0.0], [0.058, 0.0, 0.002]])
+    beside = tip + np.array([[0.02, 0.024, 0.0]])  # 50 degrees off the tip's direction
+    far = tip + np.array([[0.09, 0.0, 0.0]])  # beyond tip_reach_m
+    pts = np.concatenate([body, beyond, beside, far])
+    lab = dbscan_labels(pts, P.dbscan_eps_m, P.dbscan_min_points)
+    assert (lab[400:] == -1).all() and (lab[:400] >= 0).all()
+    chain = np.linspace([0.0, 0.006, 0.006], tip, 7)  # the previous object's keypoints, its tip last
+    tips = free_tips(chain, np.stack([np.arange(6), np.arange(1, 7)], axis=1), np.array([0, -1]))
+    np.testing.assert_allclose(tips, [[*tip, 1.0, 0.0, 0.0]], atol=1e-12)  # keypoint 0 is held: one tip
+    assert len(select_clusters_near(pts, lab, chain, P, flat=False)) == 400
+    kept = select_clusters_near(pts, lab, chain, P, flat=False, tips=tips)
+    assert len(kept) == 403
+    np.testing.assert_array_equal(kept[-3:], beyond)
+    assert len(select_clusters_near(pts, lab, chain, P, tips=tips)) == 400  # a cloth's sheet: no tips
+    # a gap wider than tip_step_m ends the chain
+    gap = np.concatenate([beyond[:1], beyond[2:]])
+    assert tip_continuations(gap, tips, P.tip_reach_m, P.tip_step_m, P.tip_cone_cos).tolist() == [True, False]

@@ -51,6 +51,11 @@ class TrackingParams:
       track_attach_m: in tracking, points DBSCAN leaves out are kept within this of the parts of the
         previous object the kept clusters do not cover, and a cloth's points of kept clusters less than
         attach_min_height_m above the table only within this of the previous object (``select_clusters_near``), m.
+      tip_reach_m, tip_step_m, tip_cone_cos: a 1D object's free tip (a leaf no gripper holds) takes the points
+        DBSCAN left out within tip_reach_m (m) of it and within the cone of that cosine around the direction its
+        last edge points, chained to it in steps of at most tip_step_m (m): a branch hanging towards or away from
+        the camera lifts to a few points a decimated pixel or two wide, too sparse for DBSCAN and beyond
+        track_attach_m of the previous object, and its keypoints bunched at the end of what was kept (0: off).
       colour_band_m, colour_min_separation, colour_radius_m: with the frame's colour, a 1D object's left-out points
         less than colour_band_m (m) above the table (the height the table's stereo noise reaches beside a part
         lying on it) stay out where their colour is the table's (``tracking.colour``): the object's where a pixel
@@ -209,6 +214,9 @@ class TrackingParams:
     no_return_open_m: float = 0.02
     track_gate_m: float = 0.05
     track_attach_m: float = 0.025
+    tip_reach_m: float = 0.06
+    tip_step_m: float = 0.03
+    tip_cone_cos: float = 0.9
     colour_band_m: float = 0.01
     colour_min_separation: float = 0.05
     colour_radius_m: float = 0.008

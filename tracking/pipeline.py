@@ -48,7 +48,7 @@ from tracking.segmentation import (
     unchanged_object_pixels,
     update_background,
 )
-from tracking.tracker import FrameResult, Tracker, TrackStatus
+from tracking.tracker import FrameResult, Tracker, TrackStatus, free_tips
 
 
 @dataclass(frozen=True)
@@ -512,9 +512,10 @@ class LivePipeline:
                 colour.shape[:2] == self.colour_model.reference.shape[:2]:
             told = partial(classify, colour=colour, model=self.colour_model, K=self.K_seg, T_world_cam=self.T,
                            radius_m=self.params.colour_radius_m)
+        tips = free_tips(X, topo.edges, self.tracker.grasp_idx) if topo.kind == "1d" else None
         seg = segment_against_background(
             depth, self.background, self.K_seg, self.T, self.seg_params, arm, X, behind, self._support, samples, thr,
-            flat=topo.kind == "2d", colour=told,
+            flat=topo.kind == "2d", colour=told, tips=tips,
         )
         if topo.kind == "1d":
             seg = complete_thin_parts(depth, seg, self.K_seg, self.T, self.seg_params, arm, self._support)

@@ -360,10 +360,41 @@ def _clusters_near(
     return near
 
 
+def _in_cones(points: np.ndarray, tips: np.ndarray, reach_m: float, cone_cos: float) -> np.ndarray:
+    """(N,) bool: points (N, 3) m within reach_m of some tip (T, 6) m and inside its cone (``tip_continuations``)."""
+    out = np.zeros(len(points), bool)
+    for t in tips:
+        rel = points - t[:3]
+        dist = np.linalg.norm(rel, axis=1)
+        out |= (dist > 0) & (dist <= reach_m) & (rel @ t[3:] >= cone_cos * dist)
+    return out
+
+
+def tip_continuations(points: np.ndarray, tips: np.ndarray, reach_m: float, step_m: float, cone_cos: float
+                      ) -> np.ndarray:
+    """(N,) bool: points (N, 3) m that continue a 1D object's free tips: within reach_m (m) of a tip, inside the
+    cone of cosine cone_cos around its outward direction, and chained to it in steps of at most step_m (m).
+
+    tips: (T, 6) m, each tip's position (3,) and unit outward direction (3,) (``tracker.free_tips``). A tube
+    pointing towards or away from the camera lifts to a few points one or two decimated pixels wide, too sparse
+    for DBSCAN; the cone keeps the table's noise and the rest of the object beside the tip out."""
+    out = np.zeros(len(points), bool)
+    for t in np.asarray(tips, np.float64).reshape(-1, 6):  # one or two tips an object
+        cone = np.flatnonzero(_in_cones(points, t[None], reach_m, cone_cos))
+        if len(cone) == 0:
+            continue
+        nodes = np.vstack([t[None, :3], points[cone]])  # node 0: the tip
+        pairs = cKDTree(nodes).query_pairs(step_m, output_type="ndarray")
+        graph = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])), shape=(len(nodes),) * 2)
+        comp = connected_components(graph, directed=False)[1]
+        out[cone[comp[1:] == comp[0]]] = True
+    return out
+
+
 def select_clusters_near(
     points: np.ndarray, labels: np.ndarray, keypoints: np.ndarray, params: TrackingParams,
     support: tuple[np.ndarray, float] | None = None, samples: np.ndarray | None = None, flat: bool = True,
-    colour: Callable[[np.ndarray], np.ndarray] | None = None,
+    colour: Callable[[np.ndarray], np.ndarray] | None = None, tips: np.ndarray | None = None,
 ) -> np.ndarray:
     """Clusters with a point within ``track_gate_m`` of the previous keypoints (N, 3) -> (M, 3) float64, m.
 
@@ -385,7 +416,10 @@ def select_clusters_near(
     colour: points (K, 3) m -> (K,) int8 ``tracking.colour.classify`` (this frame's): for an object that cannot
     lie flat, the left-out points lower than ``colour_band_m`` above the table whose colour is the table's stay
     out too (the table's stereo noise beside a part lying low reaches as high as that part's own sparse points;
-    colour tells them apart where the table's colour is not the object's)."""
+    colour tells them apart where the table's colour is not the object's).
+    tips: (T, 6) m the free tips of an object that cannot lie flat (``tracker.free_tips``): the left-out points
+    that continue them are kept too (``tip_continuations`` with ``tip_reach_m``, ``tip_step_m``, ``tip_cone_cos``;
+    those low above the table by colour, as above)."""
     ok = labels >= 0
     if len(keypoints) == 0 or len(points) == 0:
         return np.zeros((0, 3))
@@ -418,6 +452,17 @@ def select_clusters_near(
         band = height[cand] < params.colour_band_m
         if band.any():
             cand = np.delete(cand, np.flatnonzero(band)[colour(points[cand[band]]) == BACKGROUND])
+    if tips is not None and len(tips) and not flat and params.tip_reach_m > 0:
+        tips = np.asarray(tips, np.float64).reshape(-1, 6)
+        pool = np.flatnonzero(loose)
+        pool = pool[_in_cones(points[pool], tips, params.tip_reach_m, params.tip_cone_cos)]
+        if colour is not None and height is not None and len(pool):  # no chain through the table's noise
+            band = height[pool] < params.colour_band_m
+            if band.any():
+                pool = np.delete(pool, np.flatnonzero(band)[colour(points[pool[band]]) == BACKGROUND])
+        if len(pool):
+            keep[pool[tip_continuations(points[pool], tips, params.tip_reach_m, params.tip_step_m,
+                                        params.tip_cone_cos)]] = True
     if len(cand) == 0:
         return points[keep]
     ref = ref[_near(ref, points[cand], attach)]
@@ -440,10 +485,11 @@ def _cluster(
     samples: np.ndarray | None = None,
     flat: bool = True,
     colour: Callable[[np.ndarray], np.ndarray] | None = None,
+    tips: np.ndarray | None = None,
 ) -> Segmentation:
     """Lift foreground (H, W) bool pixels, voxelise, DBSCAN and select the object clusters
-    (``select_clusters_near`` with prev_keypoints, the table plane ``support``, ``samples``, ``flat`` and
-    ``colour``, else the largest)."""
+    (``select_clusters_near`` with prev_keypoints, the table plane ``support``, ``samples``, ``flat``,
+    ``colour`` and ``tips``, else the largest)."""
     s = max(1, params.lift_stride)
     sub = np.zeros_like(fg)
     sub[::s, ::s] = fg[::s, ::s]
@@ -454,7 +500,7 @@ def _cluster(
     if prev_keypoints is None:
         obj = select_largest_clusters(vox, labels, params)
     else:
-        obj = select_clusters_near(vox, labels, prev_keypoints, params, support, samples, flat, colour)
+        obj = select_clusters_near(vox, labels, prev_keypoints, params, support, samples, flat, colour, tips)
     return Segmentation(obj, len(pts), n_clusters)
 
 
@@ -1058,6 +1104,7 @@ def segment_against_background(
     thr: np.ndarray | None = None,
     flat: bool = True,
     colour: Callable[[np.ndarray], np.ndarray] | None = None,
+    tips: np.ndarray | None = None,
 ) -> Segmentation:
     """Per-frame segmentation: pixels in front of the background minus arms, clustered.
 
@@ -1066,9 +1113,10 @@ def segment_against_background(
     extra: (H, W) bool pixels known to be object as well (``behind_near_object``). support: the table plane
     (``support_plane``), samples: (S, 3) m points along the previous object (``select_clusters_near``).
     thr: ``change_threshold(background)`` when the caller has it. flat: the object can lie flat on the table
-    (``select_clusters_near``), colour: the frame's ``tracking.colour.classify`` of points (``select_clusters_near``).
+    (``select_clusters_near``), colour: the frame's ``tracking.colour.classify`` of points (``select_clusters_near``),
+    tips: the object's free tips (``select_clusters_near``).
     """
     fg = foreground_mask(depth, background, params, arm_mask, thr)
     if extra is not None:
         fg |= extra
-    return _cluster(depth, fg, K, T_world_cam, params, prev_keypoints, support, samples, flat, colour)
+    return _cluster(depth, fg, K, T_world_cam, params, prev_keypoints, support, samples, flat, colour, tips)

@@ -209,6 +209,24 @@ def regate_on_object(
     return out
 
 
+def free_tips(X: np.ndarray, edges: np.ndarray, grasp_idx: np.ndarray | None) -> np.ndarray:
+    """(T, 6) float64: the free tips of a 1D object's keypoints X (N, 3) m (leaves of edges (E, 2) that no gripper
+    holds, grasp_idx (G,) int64, -1 none): each one's position (3,) m and the unit direction (3,) its last edge
+    points outwards (``segmentation.tip_continuations``)."""
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    deg = np.bincount(edges.ravel(), minlength=len(X))
+    held = np.zeros(len(X), bool)
+    if grasp_idx is not None:
+        g = np.asarray(grasp_idx, np.int64).reshape(-1)
+        held[g[(g >= 0) & (g < len(X))]] = True
+    e = np.concatenate([edges, edges[:, ::-1]])  # (tip, its neighbour) both ways
+    e = e[(deg[e[:, 0]] == 1) & ~held[e[:, 0]]]
+    d = X[e[:, 0]] - X[e[:, 1]]
+    n = np.linalg.norm(d, axis=1)
+    ok = n > 1e-9
+    return np.hstack([X[e[ok, 0]], d[ok] / n[ok, None]]).astype(np.float64).reshape(-1, 6)
+
+
 def cloudless(topology: Topology, X: np.ndarray, cloud: np.ndarray | cKDTree, reach_m: float) -> np.ndarray:
     """(N,) bool: the keypoints X (N, 3) m whose nearest point of the cloud ((M, 3) m or its cKDTree) lies
     farther than reach_m and nearer another keypoint than them, one that is not their neighbour (topology's
