@@ -446,20 +446,24 @@ def select_clusters_near(
     attach = params.track_attach_m
     # the left-out points near the object at all, and the parts of the object near them: only these parts'
     # coverage by the kept clusters (the kept points beside them) can decide anything
+    def off_table(idx: np.ndarray) -> np.ndarray:
+        """idx without the points lower than colour_band_m above the table whose colour is the table's."""
+        if colour is None or height is None or not len(idx):
+            return idx
+        band = height[idx] < params.colour_band_m
+        if not band.any():
+            return idx
+        return np.delete(idx, np.flatnonzero(band)[colour(points[idx[band]]) == BACKGROUND])
+
     cand = np.flatnonzero(loose)
     cand = cand[_near_points(points[cand], ref, attach)]
-    if colour is not None and not flat and height is not None and len(cand):
-        band = height[cand] < params.colour_band_m
-        if band.any():
-            cand = np.delete(cand, np.flatnonzero(band)[colour(points[cand[band]]) == BACKGROUND])
+    if not flat:
+        cand = off_table(cand)
     if tips is not None and len(tips) and not flat and params.tip_reach_m > 0:
         tips = np.asarray(tips, np.float64).reshape(-1, 6)
         pool = np.flatnonzero(loose)
-        pool = pool[_in_cones(points[pool], tips, params.tip_reach_m, params.tip_cone_cos)]
-        if colour is not None and height is not None and len(pool):  # no chain through the table's noise
-            band = height[pool] < params.colour_band_m
-            if band.any():
-                pool = np.delete(pool, np.flatnonzero(band)[colour(points[pool[band]]) == BACKGROUND])
+        # the cone's points, none of the table's noise for a chain to pass through
+        pool = off_table(pool[_in_cones(points[pool], tips, params.tip_reach_m, params.tip_cone_cos)])
         if len(pool):
             keep[pool[tip_continuations(points[pool], tips, params.tip_reach_m, params.tip_step_m,
                                         params.tip_cone_cos)]] = True
