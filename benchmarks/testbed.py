@@ -422,6 +422,19 @@ VARIANTS: list[dict[str, Any]] = [
          camera=[1.05, -0.55, 1.15, 0.45, -0.45, 0.2], branch_len=0.29, radius=0.0043, rgb=[0.9, 0.3, 0.3]),
     dict(name="cloth_fast_e346", obj="cloth", speed="fast", seconds=5, seed=346,
          camera=[1.35, -0.1, 1.2, 0.45, -0.45, 0.2], rgb=[0.3, 0.4, 0.8]),
+    # generated in session 42, at camera poses no other row uses, and scored before any change
+    dict(name="rope_fast_f351", obj="rope", speed="fast", seconds=5, seed=351,
+         camera=[1.55, 0.2, 1.1, 0.45, -0.45, 0.2], length=0.86, radius=0.0055, rgb=[0.2, 0.8, 0.9]),
+    dict(name="bdlo_medium_f352", obj="bdlo", speed="medium", seconds=5, seed=352,
+         camera=[1.1, -0.75, 1.4, 0.45, -0.45, 0.15], branch_len=0.26, radius=0.0052, rgb=[0.9, 0.9, 0.2]),
+    dict(name="cloth_slow_f353", obj="cloth", speed="slow", seconds=5, seed=353,
+         camera=[1.3, -0.3, 1.55, 0.45, -0.45, 0.15], rgb=[0.8, 0.3, 0.6]),
+    dict(name="rope_slow_f354", obj="rope", speed="slow", seconds=5, seed=354,
+         camera=[0.95, -0.35, 1.05, 0.45, -0.45, 0.2], length=0.94, radius=0.0068, rgb=[0.9, 0.4, 0.1]),
+    dict(name="bdlo_fast_f355", obj="bdlo", speed="fast", seconds=5, seed=355,
+         camera=[1.75, -0.25, 1.05, 0.45, -0.45, 0.2], branch_len=0.21, radius=0.0045, rgb=[0.4, 0.9, 0.3]),
+    dict(name="cloth_medium_f356", obj="cloth", speed="medium", seconds=5, seed=356,
+         camera=[1.2, 0.3, 1.2, 0.45, -0.45, 0.2], rgb=[0.2, 0.6, 0.9]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
