@@ -229,10 +229,13 @@ def track_sequence(
     after a loss) by tracking from their tracked neighbour (``tracking.offline.fill_missing``), and track a run
     of frames left tangled again backwards from the good frame after it, switching to that solution from where
     the two meet when it is better (``tracking.offline.retrack_tangled``; metrics ``retracked_frames``,
-    ``retracked_kept``); returns raw
+    ``retracked_kept``). A chain lengthened within ``params.grow_retrack_frames`` of initialisation has the
+    frames up to it tracked again backwards with the longer chain (``tracking.offline.retrack_grown``; metric
+    ``grow_retracked``: [initialisation frame, growth frame, 1 if kept] or []); returns raw
     keypoints (T, N, 3) m (NaN only where no frame was ever tracked), grasp indices (T entries (G,) int64
-    or None), topology, metrics. The frames without keypoints are kept in memory for the second pass as the
-    forward pass prepared them (decimated uint16 depth and bit-packed arm mask, ~120 kB each at 1280x720
+    or None), topology, metrics. The frames without keypoints, those left tangled and the first
+    ``params.grow_retrack_frames`` after initialisation are kept in memory for the second pass as the forward
+    pass prepared them (decimated uint16 depth and bit-packed arm mask, ~120 kB each at 1280x720
     whatever the clip's length), with their TCPs. on_frame(i) is called after the forward pass's frame i.
     A clip whose moving part never reached the pipeline's ``min_init_points`` (an object mostly hidden, or
     only one end of it moving) is tracked again with that threshold lowered to ``INIT_RETRY_FRACTION`` of the
@@ -241,7 +244,7 @@ def track_sequence(
     from orchestrator.worker import ArmModel
     from tdrecord.sequence import iter_depth
     from tracking.metrics import sequence_summary, surface_error_mm
-    from tracking.offline import FrameInput, fill_missing, retrack_tangled
+    from tracking.offline import FrameInput, fill_missing, retrack_grown, retrack_tangled
     from tracking.pipeline import LivePipeline
 
     arms = ArmModel(seq.T_world_base) if seq.T_world_base is not None else None
@@ -260,6 +263,9 @@ def track_sequence(
     stages: list[dict[str, float]] = []  # each forward frame's LivePipeline.timings_ms (arm: its prepare)
     topology = None
     last = np.zeros((0, 3))  # the last frame's keypoints in the clip's numbering
+    first: int | None = None  # the first frame with keypoints (initialisation)
+    grown: int | None = None  # the last frame within params.grow_retrack_frames of it that lengthened a chain
+    rest_seen = np.zeros(0)  # the rest lengths after the frame before
     t_start = time.monotonic()
     for i, frame in enumerate(iter_depth(seq.frames, colour=kind != "2d")):  # a cloth's tracking reads no colour
         V, F, tcp, closed, rot = _arm_geometry(seq, i, arms)
@@ -291,9 +297,14 @@ def track_sequence(
                 kp, g = kp[perm], np.where(g >= 0, np.argsort(perm)[np.maximum(g, 0)], -1)
         if same:
             last = kp
+            if first is None:
+                first, rest_seen = i, topology.rest.copy()
+            elif i - first <= params.grow_retrack_frames and not np.array_equal(rest_seen, topology.rest):
+                grown, rest_seen = i, topology.rest.copy()  # a chain lengthened (Tracker._grow, in place)
+        early = first is not None and i - first <= params.grow_retrack_frames  # tracked again if a chain grows
         raw.append(kp if same else None)
         grasp.append(g if same else None)
-        if not same or out.tangled:  # tracked (again) in the second pass; a tangled frame keeps the better
+        if not same or out.tangled or early:  # tracked (again) in the second pass; a tangled frame keeps the better
             pending[i] = _Pending.keep(out.prepared, frame.depth, frame.depth_scale, pipe.stride, tcp, closed, rot)
         if same and out.tangled:
             tangled_at[i] = (int(out.tangled), float(out.abs_mm))
@@ -324,7 +335,7 @@ def track_sequence(
         )
 
     def frame_input(i: int) -> FrameInput:
-        p = pending.pop(i)
+        p = pending[i]  # a frame tracked again after a chain grew may be tracked a third time if left tangled
         return FrameInput(None, tcp=p.tcp, closed=p.closed, prepared=p.prepared(), tcp_rot=p.tcp_rot)
 
     assert pipe.background is not None  # set at initialisation
@@ -334,7 +345,15 @@ def track_sequence(
         p.colour_model = pipe.colour_model  # measured at the forward pass's initialisation
         return p
 
-    filled = fill_missing(raw, grasp, topology, pipe.background, make_pipeline, frame_input)  # asks missing frames
+    took = False
+    if grown is not None and first is not None:  # the frames up to a chain's growth, again with the longer chain
+        filled, took = retrack_grown(raw, grasp, first, grown, tangled_at, topology, pipe.background,
+                                     make_pipeline, frame_input)
+        if took:
+            for i in range(first, grown + 1):
+                tangled_at.pop(i, None)
+    else:
+        filled = fill_missing(raw, grasp, topology, pipe.background, make_pipeline, frame_input)  # asks missing
     second, again, kept = retrack_tangled(raw, grasp, tangled_at, [i for i, q in filled.quality.items() if q[0]],
                                           topology, pipe.background, make_pipeline, frame_input)
     pending.clear()
@@ -347,6 +366,7 @@ def track_sequence(
     if tracked_ms:  # the frames the forward pass tracked (not waiting for motion, nor initialising)
         metrics["tracked_ms_per_frame_median"] = float(np.median(tracked_ms))
     metrics["backward_frames"], metrics["forward_filled_frames"] = filled.backward, filled.forward
+    metrics["grow_retracked"] = [] if grown is None or first is None else [first, grown, int(took)]
     metrics["retracked_frames"], metrics["retracked_kept"] = again, kept  # tangled, tracked backwards again
     if filled.ms:  # the frames without keypoints: before initialisation (backwards), after a loss
         metrics["fill_ms_per_frame_median"] = float(np.median(filled.ms))

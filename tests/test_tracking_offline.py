@@ -207,3 +207,37 @@ def test_retrack_tangled_keeps_the_backward_run_from_its_least_seam() -> None:
     assert (again, kept) == (3, 0)
     for i in (3, 4, 5):
         np.testing.assert_allclose(keypoints[i], fwd[i])  # type: ignore[arg-type]
+
+
+
+@pytest.mark.parametrize(("answer_edge", "taken"), [(0.1, True), (0.05, False)])
+def test_retrack_grown_tracks_the_frames_up_to_a_growth_again_and_keeps_the_better(
+    answer_edge: float, taken: bool
+) -> None:
+    """A chain initialised at frame 2 and lengthened at frame 4 (rest 0.10 m an edge, 0.07 measured before):
+    frames 0-4 are tracked backwards from frame 5 with the longer chain; frames 2-4 take that solution only where
+    it fits the rest lengths better (edges of answer_edge m), frames 0-1 (never tracked) take it in any case."""
+    from types import SimpleNamespace
+
+    from tracking.offline import retrack_grown
+
+    def chain(edge: float, i: int) -> np.ndarray:
+        return np.array([[0.0, 0.0, 0.0], [edge, 0.0, 0.0], [2 * edge, 0.0, 0.0]]) + [0.0, 0.01 * i, 0.0]
+
+    T, first, grown = 8, 2, 4
+    topo = SimpleNamespace(n_keypoints=3, edges=np.array([[0, 1], [1, 2]]), rest=np.array([0.1, 0.1]))
+    fwd: list[np.ndarray | None] = [None, None] + [chain(0.07 if i <= grown else 0.1, i) for i in range(2, T)]
+    keypoints = list(fwd)
+    grasp: list[np.ndarray | None] = [None, None] + [np.zeros(0, np.int64)] * (T - 2)
+    pipe = _ReplayPipeline({i: (chain(answer_edge, i), 0, 1.0) for i in range(T)})
+    res, took = retrack_grown(keypoints, grasp, first, grown, {}, topo, pipe.background,  # type: ignore[arg-type]
+                              lambda: pipe,  # type: ignore[arg-type, return-value]
+                              lambda i: FrameInput(np.array(i)))
+    assert took is taken
+    assert (res.backward, res.frames) == (grown + 1, [4, 3, 2, 1, 0])
+    np.testing.assert_allclose(pipe.resumed_from[0], fwd[5])  # type: ignore[arg-type]
+    for i in range(T):
+        want = chain(answer_edge, i) if i < first or (taken and i <= grown) else fwd[i]
+        np.testing.assert_allclose(keypoints[i], want)  # type: ignore[arg-type]
+    assert all(g is not None for g in grasp)
+    assert set(res.quality) == ({0, 1, 2, 3, 4} if taken else {0, 1})

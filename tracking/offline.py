@@ -1,9 +1,10 @@
 """Offline passes over a recorded clip: frames the forward pass left without keypoints are tracked from a
 neighbouring tracked frame, backwards in time before it (the frames before initialisation, or before a
 re-initialisation) or forwards after the last one (a track lost for good), so every frame has keypoints.
-A run of frames the forward pass left tangled (a chain folded onto itself, a grid's flipped cells) is tracked
-again backwards from the good frame after it, and switches to that solution from where the two meet when it is
-better there (``retrack_tangled``).
+The frames tracked before a chain was found longer than initialisation measured are tracked again backwards
+with the longer chain (``retrack_grown``). A run of frames the forward pass left tangled (a chain folded onto
+itself, a grid's flipped cells) is tracked again backwards from the good frame after it, and switches to that
+solution from where the two meet when it is better there (``retrack_tangled``).
 
 The passes run the same ``LivePipeline`` tracking step as the forward pass (same segmentation, anchors and
 solver; the frames' decimated depth and arm masks can be handed over from the forward pass, which made them
@@ -22,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tracking.init import Topology
+from tracking.metrics import edge_rmse_mm
 from tracking.pipeline import LivePipeline, PreparedFrame
 
 
@@ -176,3 +178,43 @@ def retrack_tangled(
         for i in range(a, s):
             keypoints[i], grasp_idx[i] = forward[i]
     return res, len(again), kept
+
+
+def retrack_grown(
+    keypoints: list[np.ndarray | None],
+    grasp_idx: list[np.ndarray | None],
+    first: int,
+    grown: int,
+    tangled: dict[int, tuple[int, float]],
+    topology: Topology,
+    background: np.ndarray,
+    make_pipeline: Callable[[], LivePipeline],
+    frame: Callable[[int], FrameInput],
+) -> tuple[FillResult, bool]:
+    """Track frames [0, grown] backwards from frame grown + 1, where the forward pass had initialised at first
+    (frames before it have no keypoints) and lengthened a chain at frame grown (``Tracker._grow``; topology
+    holds the lengthened rest lengths): initialisation measured what it saw, and the frames up to the growth
+    were tracked with the shorter chain. Frames [first, grown] take the backward solution when it is, summed,
+    no more tangled and no larger in edge error (against the lengthened rest lengths) than the forward one, and
+    better in one; the frames before first take it in any case. tangled: the forward frames left tangled
+    (frame -> (tangled, Abs mm)); keypoints, grasp_idx: T entries, updated in place; the rest as
+    ``fill_missing``. Returns the backward pass's FillResult and whether frames [first, grown] took it."""
+    run = range(first, grown + 1)
+    forward = {i: (keypoints[i], grasp_idx[i]) for i in run}
+    for i in run:
+        keypoints[i] = grasp_idx[i] = None
+    res = fill_missing(keypoints, grasp_idx, topology, background, make_pipeline, frame)
+
+    def quality(X: np.ndarray | None, tangles: float) -> tuple[float, float]:  # (tangled, Abs mm) of one frame
+        if X is None:
+            return np.inf, np.inf
+        return tangles, edge_rmse_mm(np.asarray(X), topology.edges, topology.rest)
+
+    f = np.sum([quality(forward[i][0], tangled.get(i, (0, 0.0))[0]) for i in run], axis=0)
+    b = np.sum([quality(keypoints[i], res.quality.get(i, (np.inf, 0.0))[0]) for i in run], axis=0)
+    take = bool((b <= f).all() and (b < f).any())
+    if not take:
+        for i in run:
+            keypoints[i], grasp_idx[i] = forward[i]
+            res.quality.pop(i, None)
+    return res, take

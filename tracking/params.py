@@ -116,8 +116,12 @@ class TrackingParams:
         keypoint after each solver iteration (1: fixed there, the paper's hard constraint): their detections
         carry the depth noise and contour error that a fixed anchor passes on to its edges. A 1D object's
         tips and grasped keypoints are fixed, except a tip seen short (``tip_short_tol``).
-      grow_frames: a free 1D tip re-detected beyond its chain's reach ((1 + anchor_edge_tol) of the chain's rest
-        length from its other node) in this many frames running lengthens the chain to that reach (0: never).
+      grow_frames: a free 1D tip re-detected beyond its chain's reach ((1 + grow_tol) of the chain's rest length
+        from its other node) in this many frames running lengthens the chain to that reach (0: never).
+      grow_tol: that margin, a fraction of the chain's rest length.
+      grow_retrack_frames: offline, a chain lengthened within this many frames of initialisation has those
+        frames, and the ones before initialisation, tracked backwards from the frame after it with the
+        lengthened chain (kept where better: fewer tangles, smaller edge error; 0: never).
       tip_short_tol: a re-detected 1D tip nearer its one neighbour's predicted position than its edge's rest
         length by more than this fraction of it (the tip end-on, bent away or partly hidden, so the cloud's
         extreme point lies inside the object) pulls its keypoint like a junction instead of fixing it, when
@@ -261,6 +265,8 @@ class TrackingParams:
     anchor_stiffness: float = 0.2
     tip_short_tol: float = 0.15
     grow_frames: int = 3
+    grow_tol: float = 0.05
+    grow_retrack_frames: int = 30
     relift_span_tol: float = 0.06
     fold_cos: float = -0.5
     fold_span_min: float = 0.8

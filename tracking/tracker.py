@@ -630,7 +630,7 @@ class Tracker:
 
     def _grow(self, X: np.ndarray, det: np.ndarray, m: np.ndarray) -> None:
         """Lengthen a 1D chain whose free tip (not held) was re-detected farther from the chain's other node (in
-        X (N, 3) m, this frame's solution) than (1 + ``anchor_edge_tol``) of the chain's rest length in
+        X (N, 3) m, this frame's solution) than (1 + ``grow_tol``) of the chain's rest length in
         ``grow_frames`` frames running: the chain's rest lengths are scaled (in place, the track's topology) to
         that distance. Initialisation measures what it sees; a branch hanging end-on to the camera, or lying
         partly hidden, is longer. m (A,) int64: each anchor's detection in det (D, 3) m, -1 none, as
@@ -653,7 +653,7 @@ class Tracker:
                     continue
                 R = float(topo.rest[e].sum())
                 reach = float(np.linalg.norm(det[m[a[0]]] - X[node])) if m[a[0]] >= 0 else 0.0
-                self._beyond[tip] = self._beyond.get(tip, 0) + 1 if reach > (1.0 + p.anchor_edge_tol) * R else 0
+                self._beyond[tip] = self._beyond.get(tip, 0) + 1 if reach > (1.0 + p.grow_tol) * R else 0
                 if self._beyond[tip] >= p.grow_frames:
                     topo.rest[e] *= reach / R
                     self._beyond[tip] = 0
