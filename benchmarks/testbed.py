@@ -435,6 +435,19 @@ VARIANTS: list[dict[str, Any]] = [
          camera=[1.75, -0.25, 1.05, 0.45, -0.45, 0.2], branch_len=0.21, radius=0.0045, rgb=[0.4, 0.9, 0.3]),
     dict(name="cloth_medium_f356", obj="cloth", speed="medium", seconds=5, seed=356,
          camera=[1.2, 0.3, 1.2, 0.45, -0.45, 0.2], rgb=[0.2, 0.6, 0.9]),
+    # generated in session 42 after c6b8147, at camera poses no other row uses, and scored before any change
+    dict(name="bdlo_slow_f361", obj="bdlo", speed="slow", seconds=5, seed=361,
+         camera=[1.5, -0.7, 1.25, 0.45, -0.45, 0.2], branch_len=0.24, radius=0.0058, rgb=[0.8, 0.2, 0.6]),
+    dict(name="rope_medium_f362", obj="rope", speed="medium", seconds=5, seed=362,
+         camera=[1.15, 0.15, 1.5, 0.45, -0.45, 0.15], length=0.83, radius=0.0042, rgb=[0.3, 0.3, 0.9]),
+    dict(name="cloth_fast_f363", obj="cloth", speed="fast", seconds=5, seed=363,
+         camera=[1.6, -0.15, 1.35, 0.45, -0.45, 0.15], rgb=[0.9, 0.8, 0.3]),
+    dict(name="bdlo_medium_f364", obj="bdlo", speed="medium", seconds=5, seed=364,
+         camera=[1.0, -0.2, 1.3, 0.45, -0.45, 0.15], branch_len=0.2, radius=0.0066, rgb=[0.3, 0.8, 0.8]),
+    dict(name="rope_fast_f365", obj="rope", speed="fast", seconds=5, seed=365,
+         camera=[1.3, -0.6, 1.0, 0.45, -0.45, 0.2], length=0.96, radius=0.0061, rgb=[0.9, 0.5, 0.5]),
+    dict(name="cloth_medium_f366", obj="cloth", speed="medium", seconds=5, seed=366,
+         camera=[1.45, 0.05, 1.05, 0.45, -0.45, 0.2], rgb=[0.5, 0.3, 0.8]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
