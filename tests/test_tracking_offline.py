@@ -209,7 +209,6 @@ def test_retrack_tangled_keeps_the_backward_run_from_its_least_seam() -> None:
         np.testing.assert_allclose(keypoints[i], fwd[i])  # type: ignore[arg-type]
 
 
-
 @pytest.mark.parametrize(("answer_edge", "taken"), [(0.1, True), (0.05, False)])
 def test_retrack_grown_tracks_the_frames_up_to_a_growth_again_and_keeps_the_better(
     answer_edge: float, taken: bool
