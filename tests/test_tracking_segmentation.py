@@ -754,7 +754,7 @@ def test_behind_nearest_occluder_moves_a_point_the_camera_would_see_behind_the_a
     assert not in_open_space(X[:1], depth, K, np.eye(4), 0.02)[0]
 
 
-def test_a_free_tips_sparse_continuation_is_kept_and_nothing_beside_it():
+def test_a_free_tips_sparse_continuation_is_kept_and_nothing_beside_it() -> None:
     # a branch pointing away from the camera lifts to single points ~2 cm apart beyond where its tip was: DBSCAN
     # calls them noise and they are farther than track_attach_m from the previous object; chained to the tip
     # inside its cone they are kept, a point beside the cone, one beyond the reach and one past a gap are not

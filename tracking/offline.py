@@ -76,6 +76,12 @@ def retrack_frames(bad: np.ndarray, good: np.ndarray) -> np.ndarray:
     return np.concatenate(out) if out else np.zeros(0, np.int64)
 
 
+def improves(new: np.ndarray, old: np.ndarray) -> bool:
+    """Whether quality new (2,) (tangled, Abs mm; summed over frames) is no worse than old (2,) in either and
+    better in one: the test both backward passes (``switch_frame``, ``retrack_grown``) keep their solution by."""
+    return bool((new <= old).all() and (new < old).any())
+
+
 def switch_frame(forward: np.ndarray, backward: np.ndarray, q_forward: np.ndarray, q_backward: np.ndarray) -> int:
     """Where a run of K frames tracked twice switches from its forward solution to its backward one: frames
     before the returned index keep forward (K, N, 3) m, the others take backward (K, N, 3) m; K keeps forward
@@ -89,7 +95,7 @@ def switch_frame(forward: np.ndarray, backward: np.ndarray, q_forward: np.ndarra
     seam = np.linalg.norm(np.asarray(forward) - np.asarray(backward), axis=2).max(axis=1)  # (K,) m
     s = int(np.argmin(np.where(np.isfinite(seam), seam, np.inf)))
     f, b = np.asarray(q_forward, np.float64)[s:].sum(axis=0), np.asarray(q_backward, np.float64)[s:].sum(axis=0)
-    return s if (b <= f).all() and (b < f).any() else K
+    return s if improves(b, f) else K
 
 
 def fill_missing(
@@ -212,7 +218,7 @@ def retrack_grown(
 
     f = np.sum([quality(forward[i][0], tangled.get(i, (0, 0.0))[0]) for i in run], axis=0)
     b = np.sum([quality(keypoints[i], res.quality.get(i, (np.inf, 0.0))[0]) for i in run], axis=0)
-    take = bool((b <= f).all() and (b < f).any())
+    take = improves(b, f)
     if not take:
         for i in run:
             keypoints[i], grasp_idx[i] = forward[i]
