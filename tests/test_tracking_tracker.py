@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from tracking import synthetic as S
 from tracking.init import Topology
@@ -173,6 +174,11 @@ def test_respace_chains_spaces_keypoints_along_their_curve_as_their_rest_lengths
     B = np.array([[[0.0, 0, 0], [0.2, 0, 0], [1.0, 0, 0], [1.0, 1.0, 0]]])
     out = respace_chains(B, chain(np.ones(3)), cap_m=10.0)
     np.testing.assert_allclose(out[0], [[0, 0, 0], [2 / 3, 0, 0], [1, 1 / 3, 0], [1, 1, 0]], atol=1e-12)
+    # a fixed inner keypoint (a held one) stays, and the chain is spaced on either side of it
+    fixed = np.zeros(5, bool)
+    fixed[3] = True
+    held = respace_chains(X, chain(rest), cap_m=10.0, fixed=fixed)
+    np.testing.assert_allclose(held[:, :, 0], [[0, 0.375, 0.75, 1.5, 6]] * 2)  # 0-1-2-3: arcs 1 : 1 : 2 of 1.5 m
 
 
 def test_final_keypoints_respace_a_rope_not_a_grid():
@@ -278,9 +284,11 @@ def test_hidden_keypoints_move_with_the_hand_and_do_not_fail_the_frame() -> None
 
 def test_a_rope_keypoint_left_without_cloud_goes_where_behind_arm_puts_it() -> None:
     """After the solve, the 1D keypoints (not held) with no cloud within ``hidden_reach`` of the median rest length
-    are handed to behind_arm, which moves the ones the camera would see (``geometry.behind_nearest_occluder``)."""
+    are handed to behind_arm, which moves the ones the camera would see (``geometry.behind_nearest_occluder``).
+    The solve's keypoints are the ones reported here (no tube mean: that report is tested on its own)."""
     K, T = S.default_camera(W, H)
     topo, X0 = _straight_rope()
+    p = replace(P, tube_mean_half=0.0)
     xs = np.linspace(0.1, 0.2, 300)
     cloud = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)  # keypoints 1-4 have no cloud
     asked: list[np.ndarray] = []
@@ -290,9 +298,9 @@ def test_a_rope_keypoint_left_without_cloud_goes_where_behind_arm_puts_it() -> N
         moved = points[:, 0] > 0.05  # say the camera sees those there
         return points + moved[:, None] * np.array([0.0, 0.05, 0.0]), moved
 
-    tr = Tracker(P, K, T)
+    tr = Tracker(p, K, T)
     tr.resume(topo, X0, np.array([0]))
-    plain = Tracker(P, K, T)
+    plain = Tracker(p, K, T)
     plain.resume(topo, X0, np.array([0]))
     X = tr.step(cloud, tcp=X0[:1], behind_arm=behind_arm).keypoints
     Xp = plain.step(cloud, tcp=X0[:1]).keypoints
@@ -637,3 +645,55 @@ def test_a_rope_part_without_cloud_is_not_folded_onto_another_part() -> None:
     assert np.abs(X[7:, 0] - 0.04).max() < 0.002  # the unseen leg stays the right leg, in order up it
     assert (np.diff(X[7:, 1]) > 0.9 * s).all()
     assert np.abs(np.linalg.norm(np.diff(X[:7], axis=0), axis=1) - s).max() < 0.002
+
+
+def _noisy_tube(rng: np.random.Generator, eye: np.ndarray, radius: float, sigma: float) -> np.ndarray:
+    """The visible skin of a straight tube along x (y = 0, z = radius above the table), seen from eye (3,) m,
+    with depth noise sigma (m) along each point's line of sight: (M, 3) m, a point every 2 mm along, 1 mm across."""
+    x, a = np.meshgrid(np.arange(-0.05, 0.25, 0.002), np.linspace(-np.pi / 2, np.pi / 2, 2 * int(radius * 1e3) + 1))
+    view = np.array([0.0, eye[1], eye[2] - radius])
+    view /= np.linalg.norm(view)  # towards the camera, across the tube
+    side = np.cross([1.0, 0.0, 0.0], view)
+    skin = np.stack([x, np.zeros_like(x), np.full_like(x, radius)], -1)
+    skin = skin + radius * (np.cos(a)[..., None] * view + np.sin(a)[..., None] * side)
+    skin = skin.reshape(-1, 3)
+    ray = skin - eye
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    return skin + rng.normal(0.0, sigma, (len(skin), 1)) * ray
+
+
+def test_a_rope_is_reported_in_the_middle_of_its_tube_and_solved_on_from_where_the_solve_left_it() -> None:
+    """A noisy tube's solved keypoints sit on single cloud points; the reported ones (``Tracker._reported``) are
+    moved across the tube to the mean of their slice, nearer its axis, spaced along the rope as its rest lengths
+    are, the held one where it was; the solve's own keypoints stay the next frame's warm start."""
+    from tracking.solver import tube_mean
+
+    K, T = S.default_camera(W, H)
+    eye = T[:3, 3]
+    rng = np.random.default_rng(3)
+    radius = 0.006
+    cloud = _noisy_tube(rng, eye, radius, 0.003)
+    topo, X0 = _straight_rope()
+    X0[:, 2] = 2 * radius  # the rope's top
+    axis_dist = lambda X: np.hypot(X[:, 1], X[:, 2] - radius)  # noqa: E731
+    tr = Tracker(P, K, T)
+    tr.resume(topo, X0, np.array([0]))
+    res = tr.step(cloud, tcp=X0[:1])
+    solved, reported = tr.keypoints, res.keypoints
+    inner = np.arange(1, len(X0))
+    assert np.sqrt(np.mean(axis_dist(reported[inner]) ** 2)) < 0.8 * np.sqrt(np.mean(axis_dist(solved[inner]) ** 2))
+    np.testing.assert_array_equal(reported[0], solved[0])  # the held end stays at its TCP
+    assert not np.array_equal(reported, solved)
+    off = replace(P, tube_mean_half=0.0)
+    plain = Tracker(off, K, T)
+    plain.resume(topo, X0, np.array([0]))
+    np.testing.assert_array_equal(plain.step(cloud, tcp=X0[:1]).keypoints, solved)  # the warm start is the solve's
+    # tube_mean on its own: across the tube only, unflagged points and points with under three in reach unmoved
+    tan = np.tile([1.0, 0.0, 0.0], (len(X0), 1))
+    use = np.ones(len(X0), bool)
+    use[5] = False
+    far = solved.copy()
+    far[7] += [0.0, 0.0, 0.2]  # nothing within reach of it
+    moved = tube_mean(far, tan, cKDTree(cloud), 0.005, 0.01, use)
+    np.testing.assert_array_equal(moved[[5, 7]], far[[5, 7]])
+    np.testing.assert_allclose(moved[:, 0], far[:, 0])

@@ -210,6 +210,34 @@ def centre_on_ridge(
     return X + across[:, None] * lat + along_view[:, None] * dep
 
 
+def tube_mean(
+    X: np.ndarray, tangents: np.ndarray, tree: cKDTree, half_m: float, reach_m: float, use: np.ndarray,
+) -> np.ndarray:
+    """Points X (N, 3) m on a tube's visible skin, those flagged in use (N,) bool, moved across the tube to the
+    mean of its slice there: the cloud's points (``tree``, m) within half_m of the point along its unit tangent
+    (tangents (N, 3)) and reach_m across it, at least three. Only the part of the move perpendicular to the
+    tangent is taken: a keypoint keeps its place along the tube. The solve leaves a keypoint on one cloud point,
+    with that point's depth noise and wherever across the tube its edges pulled it; the slice's mean is the
+    middle of the seen skin with that noise averaged over the slice. Returns (N, 3) float64 m."""
+    X = np.array(X, np.float64)
+    idx = np.flatnonzero(np.asarray(use, bool))
+    if len(idx) == 0 or tree.n < 3:
+        return X
+    near = tree.query_ball_point(X[idx], float(np.hypot(half_m, reach_m)))
+    counts = np.array([len(n) for n in near])
+    owner = np.repeat(np.arange(len(idx)), counts)  # (M,) which keypoint each candidate point is near
+    rel = tree.data[np.concatenate(near).astype(np.int64)] - X[idx][owner]  # (M, 3)
+    t = tangents[idx][owner]
+    along = np.einsum("mj,mj->m", rel, t)
+    across = rel - along[:, None] * t
+    take = (np.abs(along) <= half_m) & (np.linalg.norm(across, axis=1) <= reach_m)
+    n = np.bincount(owner[take], minlength=len(idx))
+    total = np.stack([np.bincount(owner[take], across[take, i], minlength=len(idx)) for i in range(3)], axis=1)
+    ok = n >= 3
+    X[idx[ok]] += total[ok] / n[ok, None]
+    return X
+
+
 def adjacency(edges: np.ndarray, n_keypoints: int, self_loops: bool = False) -> np.ndarray:
     """(N, N) bool: which keypoints edges (E, 2) join; with self_loops each keypoint is its own neighbour too."""
     edges = np.asarray(edges, np.int64).reshape(-1, 2)

@@ -156,21 +156,28 @@ def spaced_along(poly: np.ndarray, r: np.ndarray) -> np.ndarray:
     return np.stack([np.interp(f * s[-1], s, poly[:, i]) for i in range(3)], axis=1)
 
 
-def respace_chains(X: np.ndarray, topology: Topology, cap_m: float, min_error_m: float = 0.0) -> np.ndarray:
+def respace_chains(
+    X: np.ndarray, topology: Topology, cap_m: float, min_error_m: float = 0.0, fixed: np.ndarray | None = None,
+) -> np.ndarray:
     """Keypoints (T, N, 3) m with each chain's inner keypoints moved along the chain's polyline to where
     ``spaced_along`` puts them (arcs in proportion to their rest lengths: the same curve, its edges evenly
-    strained). A chain's end keypoints (tips, junctions) stay; each keypoint moves at most cap_m; a chain is left
-    as it is in the frames where the RMS of its edges' length errors is at most min_error_m."""
+    strained). A chain's end keypoints (tips, junctions) stay, and so do those flagged in fixed (N,) bool (a held
+    keypoint: the chain is spaced on either side of it); each keypoint moves at most cap_m; a chain is left as it
+    is in the frames where the RMS of its edges' length errors is at most min_error_m."""
     out = np.array(X, np.float64)
     for c, r in zip(topology.chains, chain_rests(topology), strict=True):
         if len(c) < 3:
             continue
+        cut = [0, len(c) - 1] if fixed is None else [0, *np.flatnonzero(fixed[c[1:-1]]) + 1, len(c) - 1]
         for t in range(len(out)):
             P = out[t, c]  # (n, 3) this frame's chain
             if np.sqrt(np.mean((np.linalg.norm(np.diff(P, axis=0), axis=1) - r) ** 2)) <= min_error_m:
                 continue  # evenly enough strained already
-            move = spaced_along(P, r) - P
-            move[[0, -1]] = 0.0
+            move = np.zeros_like(P)
+            for a, b in zip(cut[:-1], cut[1:], strict=True):
+                if b - a >= 2:
+                    move[a:b + 1] = spaced_along(P[a:b + 1], r[a:b]) - P[a:b + 1]
+            move[cut] = 0.0
             norm = np.linalg.norm(move, axis=1, keepdims=True)
             out[t, c] = P + move * np.minimum(1.0, cap_m / np.maximum(norm, 1e-12))
     return out

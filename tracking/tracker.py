@@ -21,7 +21,15 @@ from tracking.kernels import nearest, warm_up
 from tracking.metrics import chamfer_mm, edge_rmse_mm, segment_distances
 from tracking.params import TrackingParams
 from tracking.skeleton import LEAF
-from tracking.solver import adjacency, chain_neighbours, hop_neighbours, relax_hidden, solve_keypoints
+from tracking.solver import (
+    adjacency,
+    chain_neighbours,
+    chain_tangents,
+    hop_neighbours,
+    relax_hidden,
+    solve_keypoints,
+    tube_mean,
+)
 from tracking.tangle import (
     captured,
     chain_reversals,
@@ -46,7 +54,8 @@ class TrackStatus(str, Enum):
 class FrameResult:
     """One frame's output.
 
-    keypoints: (N, 3) float64 m world, raw solution; smoothed: (N, 3) causal moving average;
+    keypoints: (N, 3) float64 m world, the frame's solution as reported (a 1D object's in the middle of its tube:
+    ``Tracker._reported``), before any smoothing; smoothed: (N, 3) causal moving average;
     status: TrackStatus (keypoints are only trustworthy when OK); edge_rmse_mm, chamfer_mm: Abs and CD;
     n_points: segmented points; anchors_matched / anchors_total: re-detected anchors used;
     grasp_idx: (G,) int64 keypoint held by each gripper, -1 = none.
@@ -522,9 +531,10 @@ class Tracker:
         self.keypoints = ini.keypoints
         if tcp is not None:
             self.grasp_idx = assign_grasp_indices(ini.keypoints, tcp, self.params.grasp_gate_m)
-        self._history.append(ini.keypoints)
+        out = self._reported(ini.keypoints, cloud, None)
+        self._history.append(out)
         na = len(ini.topology.anchor_idx)
-        return ini, self._result(ini.keypoints, cloud, na, na)
+        return ini, self._result(ini.keypoints, cloud, na, na, out=out)
 
     def resume(self, topology: Topology, keypoints: np.ndarray, grasp_idx: np.ndarray) -> None:
         """Continue from a known solution instead of initialising: keypoints (N, 3) m world of
@@ -604,7 +614,8 @@ class Tracker:
         if self.topology.kind == "1d" and p.grow_frames > 0:
             self._grow(X, det, solve.match)
         self._kept = solve.used
-        res = self._result(X, cloud, matched, na, tangled=tangled, repaired=repaired, hidden=hidden)
+        res = self._result(X, cloud, matched, na, tangled=tangled, repaired=repaired, hidden=hidden,
+                           out=self._reported(X, cloud, hidden))
         self.last_timings_ms = {"anchors": 1e3 * (t1 - t0), "solve": 1e3 * (time.perf_counter() - t1)}
         return res
 
@@ -815,9 +826,29 @@ class Tracker:
                              self.params, self.topology.colours)
         self.keypoints, self._tcp, self._velocity = X, now, None
 
+    def _reported(self, X: np.ndarray, cloud: np.ndarray | cKDTree, hidden: np.ndarray | None) -> np.ndarray:
+        """The keypoints reported for a frame's solution X (N, 3) m: a 1D object's moved across the tube to the
+        mean of their slice of the cloud (m; ``solver.tube_mean``, the ones in sight that are neither held nor a
+        junction) and spaced along each chain as its rest lengths are (``tangle.respace_chains``, the held ones
+        fixed); a cloth's are X. hidden: (N,) bool or None."""
+        assert self.topology is not None
+        p = self.params
+        topo = self.topology
+        tree = cloud if isinstance(cloud, cKDTree) else cKDTree(np.asarray(cloud, np.float64).reshape(-1, 3))
+        if topo.kind != "1d" or p.tube_mean_half <= 0 or tree.n < 3 or not len(topo.rest):
+            return X
+        held = np.zeros(len(X), bool)
+        held[self.grasp_idx[(self.grasp_idx >= 0) & (self.grasp_idx < len(X))]] = True
+        seen = ~held & (np.bincount(topo.edges.ravel(), minlength=len(X)) <= 2)
+        if hidden is not None:
+            seen &= ~np.asarray(hidden, bool)
+        mr = float(np.median(topo.rest))
+        out = tube_mean(X, chain_tangents(X, topo.chains), tree, p.tube_mean_half * mr, p.tube_mean_reach * mr, seen)
+        return respace_chains(out[None], topo, p.respace_cap * mr, 0.0, fixed=held)[0]
+
     def _result(
         self, X: np.ndarray, cloud: np.ndarray | cKDTree, matched: int, total: int, force_bad: bool = False,
-        tangled: int = 0, repaired: bool = False, hidden: np.ndarray | None = None,
+        tangled: int = 0, repaired: bool = False, hidden: np.ndarray | None = None, out: np.ndarray | None = None,
     ) -> FrameResult:
         """Score a solution, update the state and the loss-of-track counter.
 
@@ -828,7 +859,8 @@ class Tracker:
         towards a loss: the next frame tries the repair again, in the track's own topology, which a
         re-initialisation would replace (new rest lengths, keypoints renumbered). The CD that judges the frame
         is over the keypoints neither hidden (hidden (N,) bool) nor held, which have no cloud of their own; the
-        CD reported is the paper's, over all keypoints.
+        CD reported is the paper's, over all keypoints. out: the keypoints reported for X (``_reported``; default
+        X), whose Abs and CD are the ones reported; X stays the next frame's warm start.
         """
         assert self.topology is not None
         p = self.params
@@ -845,12 +877,17 @@ class Tracker:
             if self.keypoints is not None and self.keypoints is not X:
                 self._velocity = X - self.keypoints
             self.keypoints = X
+        if out is not None and out is not X:
+            abs_mm = edge_rmse_mm(out, self.topology.edges, self.topology.rest)
+            cd_mm = chamfer_mm(out, cloud) if n_points else float("inf")
+        else:
+            out = X
         if not bad and not tangled:
-            self._history.append(X)
-        smoothed = np.mean(np.stack(self._history), axis=0) if self._history else X
+            self._history.append(out)
+        smoothed = np.mean(np.stack(self._history), axis=0) if self._history else out
         status = TrackStatus.OK if not (bad or tangled) else TrackStatus.DEGRADED
         grasp = self.grasp_idx.copy()
         if self._bad >= p.lost_after_frames:
             status = TrackStatus.LOST
             self.reset()
-        return FrameResult(X, smoothed, status, abs_mm, cd_mm, n_points, matched, total, grasp, tangled, repaired)
+        return FrameResult(out, smoothed, status, abs_mm, cd_mm, n_points, matched, total, grasp, tangled, repaired)
