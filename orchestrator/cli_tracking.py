@@ -432,7 +432,7 @@ def cmd_track(args: argparse.Namespace) -> int:
     tangled = clip_tangles(final, topo, params.fold_cos)  # flagged, not passed on as good frames
     out = Path(args.out) if args.out else Path(args.input if Path(args.input).is_dir() else Path(args.input).parent)
     out.mkdir(parents=True, exist_ok=True)
-    write_reference_npz(out / "3d_keypoints.npz", final, topo.edges, topo.rest)
+    write_reference_npz(out / "3d_keypoints.npz", final, topo.edges, topo.reference_lengths)
     np.savez_compressed(out / "3d_keypoints_raw.npz", raw=raw, edges=topo.edges, rest=topo.rest,
                         anchors=topo.anchor_idx, tangled=tangled)
     metrics = {**result["metrics"], "output_tangled_frames": int((tangled > 0).sum()),

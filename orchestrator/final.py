@@ -92,7 +92,7 @@ def track_run(files: list[Path], tracking: Any) -> FinalKeypoints:  # noqa: ANN4
             grasp[i, : min(2, len(g))] = np.asarray(g, dtype=np.int64)[:2]
     return FinalKeypoints(
         keypoints=final, grasp=grasp, frame_numbers=np.asarray(seq.frame_numbers),
-        edges=np.asarray(topo.edges, dtype=np.int64), rest=np.asarray(topo.rest, dtype=np.float64),
+        edges=np.asarray(topo.edges, dtype=np.int64), rest=np.asarray(topo.reference_lengths, dtype=np.float64),
         files=[Path(f) for f in files], frames_per_file=list(seq.metadata["frames_per_file"]),
         object=str(seq.metadata.get("object") or ""), category=category, window=int(params.symmetric_window),
         params=_jsonable(asdict(params)), metrics=_jsonable(result["metrics"]), tangled=tangled,

@@ -186,8 +186,9 @@ def track_run(task: RunTask, progress: Any = None) -> dict[str, Any]:
         episodes.append({"name": Path(s.source).name, "frame_numbers": np.asarray(s.frame_numbers, np.int64),
                          "keypoints": final[a:b], "raw": raw[a:b], "grasp_indices": grasp[a:b],
                          "tangled": tangled[a:b]})
-    return {"episodes": episodes, "edges": np.asarray(topo.edges, np.int64), "rest_lengths": np.asarray(topo.rest),
-            "metrics": result["metrics"], "frames": int(len(raw)), "wall_s": time.monotonic() - t0,
+    return {"episodes": episodes, "edges": np.asarray(topo.edges, np.int64),
+            "rest_lengths": np.asarray(topo.reference_lengths), "metrics": result["metrics"],
+            "frames": int(len(raw)), "wall_s": time.monotonic() - t0,
             "cpu_s": time.process_time() - c0}
 
 

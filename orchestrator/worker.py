@@ -114,7 +114,8 @@ def keypoint_message(out: PipelineOutput, frame_number: int, stamp: float, run: 
         anchors=topo.anchor_idx if topo is not None and len(out.keypoints) else None,
         extra={
             "smoothed": np.round(out.smoothed, 6).tolist(),
-            "rest_lengths": np.round(topo.rest, 6).tolist() if topo is not None and len(out.keypoints) else [],
+            "rest_lengths": (np.round(topo.reference_lengths, 6).tolist()
+                             if topo is not None and len(out.keypoints) else []),
             "n_points": out.n_points, "processing_ms": round(ms, 2), "note": out.note,
             "run_index": run.get("run_index"),
         },

@@ -697,3 +697,22 @@ def test_a_rope_is_reported_in_the_middle_of_its_tube_and_solved_on_from_where_t
     moved = tube_mean(far, tan, cKDTree(cloud), 0.005, 0.01, use)
     np.testing.assert_array_equal(moved[[5, 7]], far[[5, 7]])
     np.testing.assert_allclose(moved[:, 0], far[:, 0])
+
+
+def test_a_ropes_reference_lengths_are_those_of_its_keypoints_as_reported() -> None:
+    """Initialisation on a noisy tube measures rest lengths on the skin's points the solve holds keypoints to; the
+    reference lengths written out are the reported (centred) chain's, nearer the tube's true 0.30 m, and the Abs
+    reported is against them. A cloth has none of its own (reference_lengths is its rest)."""
+    from tracking.metrics import edge_rmse_mm
+
+    K, T = S.default_camera(W, H)
+    cloud = _noisy_tube(np.random.default_rng(0), T[:3, 3], 0.006, 0.003)
+    tr = Tracker(P, K, T)
+    ini, res = tr.initialise(cloud, kind="1d")
+    topo = ini.topology
+    assert tr.topology is topo and topo.reference is not None
+    assert abs(topo.reference_lengths.sum() - 0.30) < abs(topo.rest.sum() - 0.30)
+    assert res.edge_rmse_mm == pytest.approx(edge_rmse_mm(res.keypoints, topo.edges, topo.reference_lengths))
+    assert res.edge_rmse_mm < edge_rmse_mm(res.keypoints, topo.edges, topo.rest)
+    off = Tracker(replace(P, tube_mean_half=0.0), K, T)
+    assert off.initialise(cloud, kind="1d")[0].topology.reference is None

@@ -34,6 +34,9 @@ class Topology:
     anchor_idx: (A,) int64 anchor keypoints; anchor_kind: (A,) int64 LEAF/JUNCTION/BOUNDARY/CORNER.
     chains: 1D: keypoint index arrays, one per branch, node to node; 2D: the grid rows.
     grid_shape: (rows, cols) for 2D, else None. colours: edge colour classes for the solver.
+    reference: (E,) float64 m, the edge lengths of the keypoints as reported where they differ from rest (a 1D
+    object's, reported in the middle of its tube, ``Tracker._reported``: rest is measured on the skin's points the
+    solve holds its keypoints to), or None: rest. Written as the reference lengths (``reference_lengths``).
     """
 
     kind: str
@@ -44,6 +47,12 @@ class Topology:
     chains: list[np.ndarray]
     grid_shape: tuple[int, int] | None = None
     colours: list[np.ndarray] = field(default_factory=list, compare=False)
+    reference: np.ndarray | None = field(default=None, compare=False)
+
+    @property
+    def reference_lengths(self) -> np.ndarray:
+        """(E,) float64 m: the edge lengths the reported keypoints are held to (``reference``, else rest)."""
+        return self.rest if self.reference is None else self.reference
 
     @property
     def n_keypoints(self) -> int:

@@ -531,6 +531,10 @@ class Tracker:
         self.keypoints = ini.keypoints
         if tcp is not None:
             self.grasp_idx = assign_grasp_indices(ini.keypoints, tcp, self.params.grasp_gate_m)
+        ref = self._reference(ini.keypoints, cloud)
+        if ref is not None:
+            self.topology = replace(ini.topology, reference=ref)
+            ini = replace(ini, topology=self.topology)
         out = self._reported(ini.keypoints, cloud, None)
         self._history.append(out)
         na = len(ini.topology.anchor_idx)
@@ -667,6 +671,8 @@ class Tracker:
                 self._beyond[tip] = self._beyond.get(tip, 0) + 1 if reach > (1.0 + p.grow_tol) * R else 0
                 if self._beyond[tip] >= p.grow_frames:
                     topo.rest[e] *= reach / R
+                    if topo.reference is not None:
+                        topo.reference[e] *= reach / R
                     self._beyond[tip] = 0
 
     def _exits(
@@ -831,20 +837,53 @@ class Tracker:
         mean of their slice of the cloud (m; ``solver.tube_mean``, the ones in sight that are neither held nor a
         junction) and spaced along each chain as its rest lengths are (``tangle.respace_chains``, the held ones
         fixed); a cloth's are X. hidden: (N,) bool or None."""
+        out = self._centred(X, cloud, hidden)
+        if out is X:
+            return X
+        assert self.topology is not None
+        mr = float(np.median(self.topology.rest))
+        return respace_chains(out[None], self.topology, self.params.respace_cap * mr, 0.0, fixed=self._held(len(X)))[0]
+
+    def _held(self, n: int) -> np.ndarray:
+        """(n,) bool: the keypoints a gripper holds."""
+        held = np.zeros(n, bool)
+        held[self.grasp_idx[(self.grasp_idx >= 0) & (self.grasp_idx < n)]] = True
+        return held
+
+    def _centred(self, X: np.ndarray, cloud: np.ndarray | cKDTree, hidden: np.ndarray | None) -> np.ndarray:
+        """A 1D object's keypoints X (N, 3) m in sight, neither held nor a junction, moved across the tube to the
+        mean of their slice of the cloud (m; ``solver.tube_mean``); X itself for a cloth or with the mean off."""
         assert self.topology is not None
         p = self.params
         topo = self.topology
         tree = cloud if isinstance(cloud, cKDTree) else cKDTree(np.asarray(cloud, np.float64).reshape(-1, 3))
         if topo.kind != "1d" or p.tube_mean_half <= 0 or tree.n < 3 or not len(topo.rest):
             return X
-        held = np.zeros(len(X), bool)
-        held[self.grasp_idx[(self.grasp_idx >= 0) & (self.grasp_idx < len(X))]] = True
-        seen = ~held & (np.bincount(topo.edges.ravel(), minlength=len(X)) <= 2)
+        seen = ~self._held(len(X)) & (np.bincount(topo.edges.ravel(), minlength=len(X)) <= 2)
         if hidden is not None:
             seen &= ~np.asarray(hidden, bool)
         mr = float(np.median(topo.rest))
-        out = tube_mean(X, chain_tangents(X, topo.chains), tree, p.tube_mean_half * mr, p.tube_mean_reach * mr, seen)
-        return respace_chains(out[None], topo, p.respace_cap * mr, 0.0, fixed=held)[0]
+        return tube_mean(X, chain_tangents(X, topo.chains), tree, p.tube_mean_half * mr, p.tube_mean_reach * mr, seen)
+
+    def _reference(self, X: np.ndarray, cloud: np.ndarray | cKDTree) -> np.ndarray | None:
+        """The reference lengths (E,) m of an initialisation's keypoints X (N, 3) m as reported: each chain's rest
+        lengths scaled by its length through the centred keypoints (``_centred``) over their sum, so the reported
+        chain, spaced as its rest lengths are, keeps them; None when nothing is centred (a cloth)."""
+        Y = self._centred(X, cloud, None)
+        if Y is X:
+            return None
+        assert self.topology is not None
+        topo = self.topology
+        row = {tuple(sorted(e)): k for k, e in enumerate(topo.edges.tolist())}
+        ref = np.array(topo.rest, np.float64)
+        for ch in topo.chains:
+            ch = np.asarray(ch, np.int64)
+            if len(ch) < 2:
+                continue
+            e = np.array([row[tuple(sorted(q))] for q in zip(ch[:-1].tolist(), ch[1:].tolist(), strict=True)])
+            length = float(np.linalg.norm(np.diff(Y[ch], axis=0), axis=1).sum())
+            ref[e] = topo.rest[e] * length / max(float(topo.rest[e].sum()), 1e-12)
+        return ref
 
     def _result(
         self, X: np.ndarray, cloud: np.ndarray | cKDTree, matched: int, total: int, force_bad: bool = False,
@@ -878,7 +917,7 @@ class Tracker:
                 self._velocity = X - self.keypoints
             self.keypoints = X
         if out is not None and out is not X:
-            abs_mm = edge_rmse_mm(out, self.topology.edges, self.topology.rest)
+            abs_mm = edge_rmse_mm(out, self.topology.edges, self.topology.reference_lengths)
             cd_mm = chamfer_mm(out, cloud) if n_points else float("inf")
         else:
             out = X
