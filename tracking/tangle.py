@@ -141,11 +141,16 @@ def captured(X: np.ndarray, chains: list[np.ndarray], idx: np.ndarray, reach: fl
     return out
 
 
+def chain_edges(topology: Topology) -> list[np.ndarray]:
+    """Each chain's edges (len(chain) - 1,) int64, indices into topology.edges, edge by edge along it."""
+    row = {(int(min(e)), int(max(e))): k for k, e in enumerate(np.asarray(topology.edges).tolist())}
+    return [np.array([row[int(min(a, b)), int(max(a, b))] for a, b in zip(c[:-1], c[1:], strict=True)], np.int64)
+            for c in topology.chains]
+
+
 def chain_rests(topology: Topology) -> list[np.ndarray]:
     """Each chain's rest lengths (len(chain) - 1,) m, edge by edge along it."""
-    rest = {(int(min(e)), int(max(e))): float(r) for e, r in zip(topology.edges, topology.rest, strict=True)}
-    return [np.array([rest[int(min(a, b)), int(max(a, b))] for a, b in zip(c[:-1], c[1:], strict=True)])
-            for c in topology.chains]
+    return [np.asarray(topology.rest, np.float64)[e] for e in chain_edges(topology)]
 
 
 def spaced_along(poly: np.ndarray, r: np.ndarray) -> np.ndarray:

@@ -32,6 +32,7 @@ from tracking.solver import (
 )
 from tracking.tangle import (
     captured,
+    chain_edges,
     chain_reversals,
     relift_chains,
     relift_grid,
@@ -531,11 +532,11 @@ class Tracker:
         self.keypoints = ini.keypoints
         if tcp is not None:
             self.grasp_idx = assign_grasp_indices(ini.keypoints, tcp, self.params.grasp_gate_m)
-        ref = self._reference(ini.keypoints, cloud)
-        if ref is not None:
-            self.topology = replace(ini.topology, reference=ref)
+        out = self._centred(ini.keypoints, cloud, None)
+        if out is not ini.keypoints:  # the reference lengths are the centred chain's; then it is reported spaced
+            self.topology = replace(ini.topology, reference=self._reference(out))
             ini = replace(ini, topology=self.topology)
-        out = self._reported(ini.keypoints, cloud, None)
+            out = self._spaced(out)
         self._history.append(out)
         na = len(ini.topology.anchor_idx)
         return ini, self._result(ini.keypoints, cloud, na, na, out=out)
@@ -655,13 +656,10 @@ class Tracker:
         p = self.params
         ai = topo.anchor_idx
         held = set(self.grasp_idx[self.grasp_idx >= 0].tolist())
-        row = {tuple(sorted(e)): i for i, e in enumerate(np.asarray(topo.edges).tolist())}
-        for ch in topo.chains:
+        for ch, e in zip(topo.chains, chain_edges(topo), strict=True):
             ch = np.asarray(ch, np.int64)
             if len(ch) < 2:
                 continue
-            e = np.array([row[tuple(sorted(q))] for q in zip(ch[:-1].tolist(), ch[1:].tolist(), strict=True)],
-                         np.int64)
             for tip, node in ((int(ch[0]), int(ch[-1])), (int(ch[-1]), int(ch[0]))):
                 a = np.flatnonzero(ai == tip)
                 if not len(a) or topo.anchor_kind[a[0]] != LEAF or tip in held:
@@ -838,11 +836,14 @@ class Tracker:
         junction) and spaced along each chain as its rest lengths are (``tangle.respace_chains``, the held ones
         fixed); a cloth's are X. hidden: (N,) bool or None."""
         out = self._centred(X, cloud, hidden)
-        if out is X:
-            return X
+        return X if out is X else self._spaced(out)
+
+    def _spaced(self, X: np.ndarray) -> np.ndarray:
+        """A 1D object's keypoints X (N, 3) m spaced along each chain as its rest lengths are, the held ones fixed
+        (``tangle.respace_chains``, moves of at most ``params.respace_cap`` median rest lengths)."""
         assert self.topology is not None
         mr = float(np.median(self.topology.rest))
-        return respace_chains(out[None], self.topology, self.params.respace_cap * mr, 0.0, fixed=self._held(len(X)))[0]
+        return respace_chains(X[None], self.topology, self.params.respace_cap * mr, 0.0, fixed=self._held(len(X)))[0]
 
     def _held(self, n: int) -> np.ndarray:
         """(n,) bool: the keypoints a gripper holds."""
@@ -865,24 +866,17 @@ class Tracker:
         mr = float(np.median(topo.rest))
         return tube_mean(X, chain_tangents(X, topo.chains), tree, p.tube_mean_half * mr, p.tube_mean_reach * mr, seen)
 
-    def _reference(self, X: np.ndarray, cloud: np.ndarray | cKDTree) -> np.ndarray | None:
-        """The reference lengths (E,) m of an initialisation's keypoints X (N, 3) m as reported: each chain's rest
-        lengths scaled by its length through the centred keypoints (``_centred``) over their sum, so the reported
-        chain, spaced as its rest lengths are, keeps them; None when nothing is centred (a cloth)."""
-        Y = self._centred(X, cloud, None)
-        if Y is X:
-            return None
+    def _reference(self, Y: np.ndarray) -> np.ndarray:
+        """The reference lengths (E,) m of an initialisation's centred keypoints Y (N, 3) m (``_centred``): each
+        chain's rest lengths scaled by its length through Y over their sum, so the reported chain, spaced as its
+        rest lengths are, keeps them."""
         assert self.topology is not None
         topo = self.topology
-        row = {tuple(sorted(e)): k for k, e in enumerate(topo.edges.tolist())}
         ref = np.array(topo.rest, np.float64)
-        for ch in topo.chains:
-            ch = np.asarray(ch, np.int64)
-            if len(ch) < 2:
-                continue
-            e = np.array([row[tuple(sorted(q))] for q in zip(ch[:-1].tolist(), ch[1:].tolist(), strict=True)])
-            length = float(np.linalg.norm(np.diff(Y[ch], axis=0), axis=1).sum())
-            ref[e] = topo.rest[e] * length / max(float(topo.rest[e].sum()), 1e-12)
+        for ch, e in zip(topo.chains, chain_edges(topo), strict=True):
+            if len(e):
+                length = float(np.linalg.norm(np.diff(Y[np.asarray(ch, np.int64)], axis=0), axis=1).sum())
+                ref[e] = topo.rest[e] * length / max(float(topo.rest[e].sum()), 1e-12)
         return ref
 
     def _result(
