@@ -448,6 +448,19 @@ VARIANTS: list[dict[str, Any]] = [
          camera=[1.3, -0.6, 1.0, 0.45, -0.45, 0.2], length=0.96, radius=0.0061, rgb=[0.9, 0.5, 0.5]),
     dict(name="cloth_medium_f366", obj="cloth", speed="medium", seconds=5, seed=366,
          camera=[1.45, 0.05, 1.05, 0.45, -0.45, 0.2], rgb=[0.5, 0.3, 0.8]),
+    # generated in session 44, at camera poses no other row uses, and scored before any change
+    dict(name="rope_medium_b371", obj="rope", speed="medium", seconds=5, seed=371,
+         camera=[1.35, -0.45, 1.45, 0.45, -0.45, 0.2], length=0.91, radius=0.0049, rgb=[0.9, 0.2, 0.3]),
+    dict(name="bdlo_fast_b372", obj="bdlo", speed="fast", seconds=5, seed=372,
+         camera=[1.05, 0.25, 1.15, 0.45, -0.45, 0.2], branch_len=0.23, radius=0.0061, rgb=[0.2, 0.5, 0.9]),
+    dict(name="cloth_fast_b373", obj="cloth", speed="fast", seconds=5, seed=373,
+         camera=[1.25, -0.55, 1.3, 0.45, -0.45, 0.15], rgb=[0.3, 0.8, 0.4]),
+    dict(name="rope_fast_b374", obj="rope", speed="fast", seconds=5, seed=374,
+         camera=[1.65, 0.1, 1.3, 0.45, -0.45, 0.2], length=0.85, radius=0.0064, rgb=[0.6, 0.2, 0.8]),
+    dict(name="bdlo_medium_b375", obj="bdlo", speed="medium", seconds=5, seed=375,
+         camera=[1.4, -0.85, 1.1, 0.45, -0.45, 0.2], branch_len=0.27, radius=0.0047, rgb=[0.9, 0.6, 0.1]),
+    dict(name="cloth_slow_b376", obj="cloth", speed="slow", seconds=5, seed=376,
+         camera=[1.0, -0.05, 1.45, 0.45, -0.45, 0.15], rgb=[0.9, 0.3, 0.3]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
