@@ -485,6 +485,32 @@ def test_an_end_the_hand_hides_beyond_the_grasp_gate_is_still_put_at_its_tcp(gap
     assert pipe.tracker.grasp_idx[1] < 0
 
 
+def test_a_cloth_corner_the_hand_hides_beyond_the_grasp_gate_is_still_put_at_its_tcp() -> None:
+    """A cloth seen up to 10 cm short of a TCP that holds its corner (beyond ``grasp_gate_m``), the hand covering
+    the way, has that corner put at the TCP; with the default gate the grid ends on the seen corner instead."""
+    from tracking.pipeline import LivePipeline
+
+    K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
+    T = np.eye(4)  # camera at the origin looking along +z
+    x, y = np.meshgrid(np.linspace(-0.2, 0.2, 81), np.linspace(-0.15, 0.15, 61))
+    cloud = np.stack([x.ravel(), y.ravel(), 1.0 + 0.02 * np.sin(8.0 * x.ravel())], axis=1)  # seen up to x = 0.2
+    z = 1.0 + 0.02 * np.sin(8.0 * np.array([-0.2, 0.3]))
+    tcp = np.array([[-0.2, -0.15, z[0]], [0.3, -0.15, z[1]]])  # the second 10 cm beyond the seen top corner
+    pipe = LivePipeline(P, K, T, "2d")
+    h, w = pipe.decimate(np.zeros((480, 640))).shape
+    u = pipe.K_seg[0, 0] * 0.2 + pipe.K_seg[0, 2]  # a hand over x > 0.2 around the top side
+    v0, v1 = pipe.K_seg[1, 2] - pipe.K_seg[1, 1] * 0.2, pipe.K_seg[1, 2] - pipe.K_seg[1, 1] * 0.1
+    hand = np.zeros((h, w), bool)
+    hand[int(v0): int(v1) + 1, int(u):] = True
+    gates = pipe.grasp_gates(cloud, hand, tcp)
+    assert gates[0] == P.grasp_gate_m and gates[1] > 0.1 + P.grasp_gate_m - 0.01
+    ini, _ = pipe.tracker.initialise(cloud, tcp=tcp, kind="2d", grasp_gate=gates)
+    assert (pipe.tracker.grasp_idx >= 0).all()
+    np.testing.assert_allclose(ini.keypoints[pipe.tracker.grasp_idx], tcp, atol=1e-9)
+    pipe.tracker.initialise(cloud, tcp=tcp, kind="2d")  # the default gate: that corner is left free
+    assert pipe.tracker.grasp_idx[1] < 0
+
+
 def test_grown_segmentation_with_the_table_plane_takes_the_still_part_of_a_hanging_sheet(cam):
     """Only the upper half of a sheet hanging in front of the table moved: growth over changed pixels keeps
     that half; with the reference's table plane it also crosses the still lower half, and never the table."""

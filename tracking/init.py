@@ -321,6 +321,7 @@ def initialise_2d(
     params: TrackingParams,
     obj: ObjectClass,
     held: np.ndarray | None = None,
+    held_gate: np.ndarray | None = None,
 ) -> Initialisation:
     """Initialise a rectangular 2D object (cloth) from its segmented cloud (N, 3) float64 m world.
 
@@ -331,7 +332,7 @@ def initialise_2d(
     it (its edges then disagree by ~10 mm RMS from the start; measured across the cloud surface
     instead of as chords, the rest lengths exceed what chords between keypoints on a folded
     surface can reach). held: (H, 3) m TCPs of closed grippers: they pick the held corners of the
-    contour, and a grid corner within ``grasp_gate_m`` of one is placed at it.
+    contour, and a grid corner within held_gate (H,) m (default ``grasp_gate_m``) of one is placed at it.
     """
     ct = contour_3d(cloud, K, T_world_cam, params, held, robust=True)
     if ct is None:
@@ -343,7 +344,9 @@ def initialise_2d(
         hp = np.asarray(held, np.float64).reshape(-1, 3)
         cost = np.linalg.norm(hp[:, None, :] - X0[corners][None, :, :], axis=2)
         r, k = linear_sum_assignment(cost)
-        ok = cost[r, k] <= params.grasp_gate_m
+        gate = np.broadcast_to(np.asarray(params.grasp_gate_m if held_gate is None else held_gate, np.float64),
+                               (len(hp),))
+        ok = cost[r, k] <= gate[r]
         X0[corners[k[ok]]] = hp[r[ok]]
     topo = cloth_topology(X0, R, C)
     bi = topo.anchor_idx
@@ -373,8 +376,8 @@ def initialise(
     """Classify (unless ``kind`` "1d"/"2d" is given) and initialise keypoints on a segmented cloud (N, 3) m.
 
     root_hint: (3,) m, e.g. the first gripper's TCP: a 1D object's keypoint 0 is the end there.
-    held: (H, 3) m TCPs of the closed grippers: the object is held there (1D ends are put there; held_gate (H,) m:
-    how far from each TCP its end may be seen, default ``grasp_gate_m``).
+    held: (H, 3) m TCPs of the closed grippers: the object is held there (1D ends and cloth corners are put there;
+    held_gate (H,) m: how far from each TCP its end or corner may be seen, default ``grasp_gate_m``).
     Raises InitialisationError when the cloud is too small or has no usable skeleton / contour.
     """
     if len(cloud) < params.min_object_points:
@@ -384,4 +387,4 @@ def initialise(
         obj = ObjectClass(kind, obj.line_ratio, obj.plane_ratio)
     if obj.kind == "1d":
         return initialise_1d(cloud, K, T_world_cam, params, obj, root_hint, held, held_gate)
-    return initialise_2d(cloud, K, T_world_cam, params, obj, held)
+    return initialise_2d(cloud, K, T_world_cam, params, obj, held, held_gate)

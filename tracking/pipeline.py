@@ -356,12 +356,12 @@ class LivePipeline:
         return out
 
     def grasp_gates(self, cloud: np.ndarray, arm: np.ndarray | None, tcp: np.ndarray | None) -> np.ndarray | None:
-        """How far (G,) m from each TCP tcp (G, 3) m the end of a 1D object held there may be seen in the cloud
-        (N, 3) m: ``grasp_gate_m``, or, where the straight way from the cloud's nearest point to the TCP is hidden
-        (behind the arm: decimated mask; or outside the image: ``gaps_hidden``), that point's distance plus
-        ``grasp_gate_m``: a hand seen across its fingers, or an arm in front of the rope it holds, hides the end
-        whatever the length hidden. None without TCPs, arm or cloud, or for a cloth."""
-        if tcp is None or arm is None or len(cloud) == 0 or self.kind == "2d":
+        """How far (G,) m from each TCP tcp (G, 3) m the end of a 1D object (a cloth's corner) held there may be
+        seen in the cloud (N, 3) m: ``grasp_gate_m``, or, where the straight way from the cloud's nearest point to
+        the TCP is hidden (behind the arm: decimated mask; or outside the image: ``gaps_hidden``), that point's
+        distance plus ``grasp_gate_m``: a hand seen across its fingers, or an arm in front of the rope or cloth
+        it holds, hides the end whatever the length hidden. None without TCPs, arm or cloud."""
+        if tcp is None or arm is None or len(cloud) == 0:
             return None
         p = self.seg_params
         tcp = np.asarray(tcp, np.float64).reshape(-1, 3)

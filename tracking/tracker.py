@@ -505,7 +505,7 @@ class Tracker:
         """Initialise on a segmented cloud (M, 3) m; tcp (G, 3) m of the grippers gives grasp indices
         (and keypoint 0 at the first gripper's end); the ends (corners) held by the closed grippers
         (gripper_closed (G,) bool; None: every TCP within ``grasp_gate_m`` of an end or a corner) are placed
-        at their TCPs. grasp_gate (G,) m: how far from each TCP a 1D object's end held there may be seen
+        at their TCPs. grasp_gate (G,) m: how far from each TCP an end or a corner held there may be seen
         (default ``grasp_gate_m``; farther where the hand hides more of it: ``LivePipeline.grasp_gates``).
 
         Raises tracking.init.InitialisationError when the cloud cannot be initialised.
