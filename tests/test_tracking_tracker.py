@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 
 from tracking import synthetic as S
 from tracking.init import Topology
-from tracking.metrics import anchor_error_mm, surface_error_mm
+from tracking.metrics import anchor_error_mm, edge_rmse_mm, surface_error_mm
 from tracking.params import TrackingParams
 from tracking.segmentation import background_from_depths, render_arm_mask, segment_against_background
 from tracking.tracker import (
@@ -716,3 +716,63 @@ def test_a_ropes_reference_lengths_are_those_of_its_keypoints_as_reported() -> N
     assert res.edge_rmse_mm < edge_rmse_mm(res.keypoints, topo.edges, topo.rest)
     off = Tracker(replace(P, tube_mean_half=0.0), K, T)
     assert off.initialise(cloud, kind="1d")[0].topology.reference is None
+
+
+def test_shorten_stretched_shortens_only_the_stretched_edges_and_keeps_the_fixed_keypoints() -> None:
+    """A chain of three with one edge 50 % too long and one 50 % too short: sweeps bring the long one to its rest
+    length and leave the short one shorter than its rest length; an unmovable keypoint does not move."""
+    from tracking.solver import shorten_stretched
+
+    X = np.array([[0.0, 0.0, 0.0], [0.15, 0.0, 0.0], [0.2, 0.0, 0.0]])
+    edges = np.array([[0, 1], [1, 2]])
+    rest = np.array([0.1, 0.1])
+    Y = shorten_stretched(X, edges, rest, np.array([False, True, True]), 30)
+    L = np.linalg.norm(Y[edges[:, 1]] - Y[edges[:, 0]], axis=1)
+    np.testing.assert_allclose(Y[0], X[0])
+    assert abs(L[0] - 0.1) < 1e-6 and L[1] <= 0.1
+    np.testing.assert_allclose(shorten_stretched(X, edges, np.array([0.2, 0.1]), np.ones(3, bool), 5), X)
+
+
+def test_onto_local_plane_moves_points_along_the_surface_normal_only() -> None:
+    """Points 5 mm above a tilted plane of cloud points end on it, each along the plane's normal; the ones not
+    asked for do not move."""
+    from tracking.solver import onto_local_plane
+
+    u, v = np.meshgrid(np.linspace(-0.1, 0.1, 41), np.linspace(-0.1, 0.1, 41))
+    normal = np.array([0.0, -np.sin(0.4), np.cos(0.4)])
+    e1, e2 = np.array([1.0, 0.0, 0.0]), np.cross(normal, [1.0, 0.0, 0.0])
+    cloud = u.reshape(-1, 1) * e1 + v.reshape(-1, 1) * e2
+    on = np.array([[0.02, 0.03], [-0.05, 0.01], [0.0, 0.0]]) @ np.stack([e1, e2])
+    X = on + 0.005 * normal
+    Y = onto_local_plane(X, cKDTree(cloud), np.array([True, True, False]))
+    np.testing.assert_allclose(Y[:2], on[:2], atol=1e-9)
+    np.testing.assert_allclose(Y[2], X[2])
+
+
+def test_a_cloths_stretched_keypoints_are_reported_unstretched_a_folded_one_as_solved() -> None:
+    """A grid keypoint pulled 3 cm off its place in the sheet (its four edges stretched) is reported back towards it,
+    its held corner kept, the solve's keypoints untouched; a grid whose edges are only shorter (a fold) is reported
+    as solved, as is one whose edge error is under ``stretch_abs_mm``."""
+    from tracking.init import cloth_topology
+
+    K, T = S.default_camera(W, H)
+    a, b = np.meshgrid(np.linspace(0.0, 0.25, 6), np.linspace(0.0, 0.25, 6))
+    X0 = np.stack([a, b, np.zeros_like(a)], axis=-1).reshape(-1, 3)
+    tr = Tracker(P, K, T)
+    tr.resume(cloth_topology(X0, 6, 6), X0, np.array([0, -1]))
+    u, v = np.meshgrid(np.linspace(0.0, 0.25, 60), np.linspace(0.0, 0.25, 60))
+    sheet = cKDTree(np.stack([u.ravel(), v.ravel(), np.zeros(u.size)], axis=1))
+    X = X0.copy()
+    X[14] += [0.03, 0.0, 0.0]
+    out = tr._reported(X, sheet, None)
+    assert out is not X and np.linalg.norm(out[14] - X0[14]) < 0.7 * np.linalg.norm(X[14] - X0[14])
+    topo = tr.topology
+    assert edge_rmse_mm(out, topo.edges, topo.rest) < 0.7 * edge_rmse_mm(X, topo.edges, topo.rest)
+    np.testing.assert_allclose(out[0], X0[0])
+    assert abs(out[:, 2]).max() < 1e-9  # on the sheet
+    np.testing.assert_allclose(X[14], X0[14] + [0.03, 0.0, 0.0])  # the solve's keypoints are not changed
+    folded = X0 * [1.0, 0.8, 1.0]  # every column edge 20 % short
+    assert tr._reported(folded, sheet, None) is folded
+    small = X0.copy()
+    small[14] += [0.003, 0.0, 0.0]
+    assert tr._reported(small, sheet, None) is small

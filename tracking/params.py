@@ -181,6 +181,12 @@ class TrackingParams:
         most respace_cap). The solve's keypoints stay the next frame's warm start. The solve leaves a keypoint on
         one point of the cloud, with that point's depth noise (~2 mm RMS at 1 m, 4-6 mm at 1.5-1.9 m on the test
         bed's stereo), wherever across the tube its edges pulled it. tube_mean_half 0: off.
+      stretch_abs_mm, stretch_sweeps: a cloth's keypoints whose edge error is above stretch_abs_mm (mm) are
+        reported with their edges longer than their rest lengths shortened (stretch_sweeps Jacobi sweeps,
+        ``solver.shorten_stretched``, held ones fixed) and those in sight put back onto the plane of their nearest
+        cloud points (``solver.onto_local_plane``), when that lowers the edge error: the cloth does not stretch,
+        and the cloud projection that ends each solve iteration leaves edges stretched across a fold or a twist.
+        A shorter edge is left alone (a fold the 6x6 grid cannot show). stretch_sweeps 0: off.
       respace_cap, respace_error: in a frame where the RMS of a chain's edge length errors exceeds respace_error
         median rest lengths, a 1D object's final keypoints are spaced along that chain's tracked curve in
         proportion to their rest lengths (``tangle.respace_chains``: a rope does not stretch, and the solve can
@@ -293,6 +299,8 @@ class TrackingParams:
     smooth_gate: float = 2.0
     tube_mean_half: float = 0.25
     tube_mean_reach: float = 0.5
+    stretch_abs_mm: float = 4.0
+    stretch_sweeps: int = 5
     respace_cap: float = 0.5
     respace_error: float = 0.1
     min_object_points: int = 30

@@ -238,6 +238,50 @@ def tube_mean(
     return X
 
 
+def shorten_stretched(
+    X: np.ndarray, edges: np.ndarray, rest: np.ndarray, movable: np.ndarray, sweeps: int
+) -> np.ndarray:
+    """Keypoints X (N, 3) m after ``sweeps`` Jacobi sweeps that shorten each edge (edges (E, 2)) longer than its
+    rest length (rest (E,) m) back to it, moving only the movable (N,) bool keypoints (each by the mean of its
+    edges' corrections); a shorter edge is left as it is. A cloth does not stretch but folds: between two
+    keypoints a chord longer than the cloth is wrong, a shorter one a fold the grid cannot show.
+    Returns (N, 3) float64 m."""
+    Y = np.array(X, np.float64)
+    w = np.asarray(movable, np.float64)
+    i, j = np.asarray(edges, np.int64).T
+    for _ in range(sweeps):
+        d = Y[j] - Y[i]
+        L = np.linalg.norm(d, axis=1)
+        over = np.maximum(L - rest, 0.0) / np.maximum(L, 1e-12)  # (E,) the fraction of each edge to take off
+        wsum = w[i] + w[j]
+        f = (over / np.where(wsum > 0, wsum, 1.0))[:, None] * d  # (E, 3)
+        move = np.zeros_like(Y)
+        count = np.zeros(len(Y))
+        np.add.at(move, i, w[i, None] * f)
+        np.add.at(move, j, -w[j, None] * f)
+        np.add.at(count, i, (over > 0) * w[i])
+        np.add.at(count, j, (over > 0) * w[j])
+        Y += move / np.maximum(count, 1.0)[:, None]
+    return Y
+
+
+def onto_local_plane(X: np.ndarray, tree: cKDTree, use: np.ndarray, k: int = 8) -> np.ndarray:
+    """Points X (N, 3) m, those flagged in use (N,) bool, moved along the normal of the plane through their k
+    nearest cloud points (``tree``, m; the least-variance direction) onto that plane: back onto the seen surface,
+    wherever along it they are. Returns (N, 3) float64 m."""
+    X = np.array(X, np.float64)
+    idx = np.flatnonzero(np.asarray(use, bool))
+    if len(idx) == 0 or tree.n < k:
+        return X
+    _, nn = tree.query(X[idx], k=k)
+    nb = tree.data[nn]  # (S, k, 3)
+    c = nb.mean(axis=1)
+    d = nb - c[:, None, :]
+    normal = np.linalg.eigh(np.einsum("ski,skj->sij", d, d))[1][:, :, 0]  # (S, 3) unit, smallest eigenvalue's
+    X[idx] -= np.einsum("si,si->s", X[idx] - c, normal)[:, None] * normal
+    return X
+
+
 def adjacency(edges: np.ndarray, n_keypoints: int, self_loops: bool = False) -> np.ndarray:
     """(N, N) bool: which keypoints edges (E, 2) join; with self_loops each keypoint is its own neighbour too."""
     edges = np.asarray(edges, np.int64).reshape(-1, 2)

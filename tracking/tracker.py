@@ -26,7 +26,9 @@ from tracking.solver import (
     chain_neighbours,
     chain_tangents,
     hop_neighbours,
+    onto_local_plane,
     relax_hidden,
+    shorten_stretched,
     solve_keypoints,
     tube_mean,
 )
@@ -834,9 +836,29 @@ class Tracker:
         """The keypoints reported for a frame's solution X (N, 3) m: a 1D object's moved across the tube to the
         mean of their slice of the cloud (m; ``solver.tube_mean``, the ones in sight that are neither held nor a
         junction) and spaced along each chain as its rest lengths are (``tangle.respace_chains``, the held ones
-        fixed); a cloth's are X. hidden: (N,) bool or None."""
+        fixed); a cloth's are X, or, with an edge error above ``params.stretch_abs_mm``, X unstretched
+        (``_unstretched``). hidden: (N,) bool or None."""
+        if self.topology is not None and self.topology.kind == "2d":
+            return self._unstretched(X, cloud, hidden)
         out = self._centred(X, cloud, hidden)
         return X if out is X else self._spaced(out)
+
+    def _unstretched(self, X: np.ndarray, cloud: np.ndarray | cKDTree, hidden: np.ndarray | None) -> np.ndarray:
+        """A cloth's keypoints X (N, 3) m with an edge error above ``params.stretch_abs_mm``: the edges longer
+        than their rest lengths shortened (``solver.shorten_stretched``, the held keypoints fixed) and the
+        keypoints in sight put back onto the plane of their nearest cloud points (``solver.onto_local_plane``);
+        X itself when that does not lower the edge error, or below the threshold."""
+        assert self.topology is not None
+        p, topo = self.params, self.topology
+        before = edge_rmse_mm(X, topo.edges, topo.rest)
+        if p.stretch_sweeps <= 0 or before <= p.stretch_abs_mm:
+            return X
+        held = self._held(len(X))
+        Y = shorten_stretched(X, topo.edges, topo.rest, ~held, p.stretch_sweeps)
+        tree = cloud if isinstance(cloud, cKDTree) else cKDTree(np.asarray(cloud, np.float64).reshape(-1, 3))
+        seen = ~held if hidden is None else ~held & ~np.asarray(hidden, bool)
+        Y = onto_local_plane(Y, tree, seen)
+        return Y if edge_rmse_mm(Y, topo.edges, topo.rest) < before else X
 
     def _spaced(self, X: np.ndarray) -> np.ndarray:
         """A 1D object's keypoints X (N, 3) m spaced along each chain as its rest lengths are, the held ones fixed
