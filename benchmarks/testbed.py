@@ -461,6 +461,19 @@ VARIANTS: list[dict[str, Any]] = [
          camera=[1.4, -0.85, 1.1, 0.45, -0.45, 0.2], branch_len=0.27, radius=0.0047, rgb=[0.9, 0.6, 0.1]),
     dict(name="cloth_slow_b376", obj="cloth", speed="slow", seconds=5, seed=376,
          camera=[1.0, -0.05, 1.45, 0.45, -0.45, 0.15], rgb=[0.9, 0.3, 0.3]),
+    # generated in session 44 after 11eb8de, at camera poses no other row uses, and scored before any change
+    dict(name="cloth_medium_b381", obj="cloth", speed="medium", seconds=5, seed=381,
+         camera=[1.5, -0.95, 1.25, 0.45, -0.45, 0.2], rgb=[0.95, 0.95, 0.95]),
+    dict(name="rope_slow_b382", obj="rope", speed="slow", seconds=5, seed=382,
+         camera=[1.2, -0.3, 0.9, 0.45, -0.45, 0.25], length=0.98, radius=0.0058, rgb=[0.1, 0.6, 0.2]),
+    dict(name="bdlo_medium_b383", obj="bdlo", speed="medium", seconds=5, seed=383,
+         camera=[1.6, 0.0, 1.5, 0.45, -0.45, 0.15], branch_len=0.25, radius=0.0053, rgb=[0.8, 0.1, 0.1]),
+    dict(name="cloth_fast_b384", obj="cloth", speed="fast", seconds=5, seed=384,
+         camera=[1.1, -0.8, 1.0, 0.45, -0.45, 0.2], rgb=[0.2, 0.3, 0.7]),
+    dict(name="rope_medium_b385", obj="rope", speed="medium", seconds=5, seed=385,
+         camera=[1.45, -0.15, 1.15, 0.45, -0.45, 0.2], length=0.82, radius=0.0045, rgb=[0.9, 0.8, 0.1]),
+    dict(name="bdlo_fast_b388", obj="bdlo", speed="fast", seconds=5, seed=388,
+         camera=[1.3, 0.35, 1.35, 0.45, -0.45, 0.15], branch_len=0.22, radius=0.0068, rgb=[0.5, 0.2, 0.9]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
