@@ -474,6 +474,19 @@ VARIANTS: list[dict[str, Any]] = [
          camera=[1.45, -0.15, 1.15, 0.45, -0.45, 0.2], length=0.82, radius=0.0045, rgb=[0.9, 0.8, 0.1]),
     dict(name="bdlo_fast_b388", obj="bdlo", speed="fast", seconds=5, seed=388,
          camera=[1.3, 0.35, 1.35, 0.45, -0.45, 0.15], branch_len=0.22, radius=0.0068, rgb=[0.5, 0.2, 0.9]),
+    # generated in session 45, at camera poses no other row uses, and scored before any change
+    dict(name="cloth_medium_b391", obj="cloth", speed="medium", seconds=5, seed=391,
+         camera=[1.2, -0.65, 1.4, 0.45, -0.45, 0.15], rgb=[0.6, 0.6, 0.2]),
+    dict(name="rope_fast_b392", obj="rope", speed="fast", seconds=5, seed=392,
+         camera=[1.55, -0.3, 1.05, 0.45, -0.45, 0.2], length=0.88, radius=0.0055, rgb=[0.2, 0.7, 0.7]),
+    dict(name="bdlo_slow_b393", obj="bdlo", speed="slow", seconds=5, seed=393,
+         camera=[1.15, 0.05, 1.25, 0.45, -0.45, 0.2], branch_len=0.26, radius=0.006, rgb=[0.7, 0.4, 0.2]),
+    dict(name="cloth_slow_b394", obj="cloth", speed="slow", seconds=5, seed=394,
+         camera=[1.4, -0.25, 1.5, 0.45, -0.45, 0.15], rgb=[0.3, 0.6, 0.9]),
+    dict(name="rope_medium_b395", obj="rope", speed="medium", seconds=5, seed=395,
+         camera=[1.05, -0.55, 1.2, 0.45, -0.45, 0.2], length=0.94, radius=0.0068, rgb=[0.95, 0.45, 0.1]),
+    dict(name="cloth_fast_b396", obj="cloth", speed="fast", seconds=5, seed=396,
+         camera=[1.35, 0.2, 1.2, 0.45, -0.45, 0.2], rgb=[0.8, 0.5, 0.7]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
