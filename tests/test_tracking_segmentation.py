@@ -13,7 +13,9 @@ from tracking.geometry import depth_to_points, gaps_hidden, hidden_behind, proje
 from tracking.params import TrackingParams
 from tracking.segmentation import (
     background_from_depths,
+    behind_continuing,
     behind_near_object,
+    change_threshold,
     rasterise_depth,
     render_arm_depth,
     render_arm_mask,
@@ -807,3 +809,29 @@ def test_a_free_tips_sparse_continuation_is_kept_and_nothing_beside_it() -> None
     # a gap wider than tip_step_m ends the chain
     gap = np.concatenate([beyond[:1], beyond[2:]])
     assert tip_continuations(gap, tips, P.tip_reach_m, P.tip_step_m, P.tip_cone_cos).tolist() == [True, False]
+
+
+def test_a_surface_continuing_the_object_behind_the_references_is_object_revealed_background_is_not() -> None:
+    """The references held a hand at 1 m over the right of the image; the cloth now hangs there at 1.22-1.25 m,
+    behind that background, continuing the part seen in front of the 2 m background on the left: that part is
+    object however far the keypoints lag. The far wall revealed below, behind the same background but apart
+    from the cloth, and an arm pixel are not."""
+    h, w = 60, 80
+    K = np.array([[80.0, 0.0, 40.0], [0.0, 80.0, 30.0], [0.0, 0.0, 1.0]])
+    T = np.eye(4)
+    background = np.full((h, w), 2.0, np.float32)
+    background[10:58, 40:60] = 1.0  # the hand in the references
+    depth = np.full((h, w), 2.0, np.float32)
+    cols = np.arange(10, 60)
+    depth[10:50, 10:60] = (1.2 + 0.001 * (cols - 10))[None, :]  # the cloth: seen on the left, behind on the right
+    seeds = np.zeros((h, w), bool)
+    seeds[10:50, 10:26] = True  # the last frame's object pixels
+    arm = np.zeros((h, w), bool)
+    arm[20, 50] = True
+    thr = change_threshold(background, P)
+    out = behind_continuing(depth, background, P, seeds, K, T, arm, None, thr)
+    expect = np.zeros((h, w), bool)
+    expect[10:50, 40:60] = True
+    expect[20, 50] = False
+    np.testing.assert_array_equal(out, expect)  # rows 52-57 there show the wall at 2 m: revealed, not object
+    assert not behind_continuing(depth, background, P, np.zeros((h, w), bool), K, T, arm, None, thr).any()

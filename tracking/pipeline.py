@@ -29,12 +29,14 @@ from tracking.geometry import (
     gaps_hidden,
     hidden_behind,
     in_open_space,
+    pixel_mask,
 )
 from tracking.init import InitialisationError, Topology
 from tracking.params import TrackingParams
 from tracking.segmentation import (
     Segmentation,
     background_from_depths,
+    behind_continuing,
     behind_near_object,
     change_threshold,
     complete_thin_parts,
@@ -183,6 +185,7 @@ class LivePipeline:
             maxlen=max(0, self.params.background_confirm_1d - 1, self.params.background_confirm_2d - 1)
         )
         self.background: np.ndarray | None = None  # (h, w) float32 m, decimated
+        self._last_cloud: np.ndarray | None = None  # the last frame's segmented object (M, 3) m world
         self.init_failures = 0
         self.last_init_error = ""
         self._timings: dict[str, float] = {}
@@ -494,6 +497,7 @@ class LivePipeline:
         if self.kind != "2d" and colour is not None and self._c0 is not None and colour.shape == self._c0.shape:
             self.colour_model = measure_object(colour, self._c0, cloud, self.K_seg, self.T,
                                                self.params.colour_min_separation)
+        self._last_cloud = np.asarray(cloud, np.float64)
         return self._output("init", res, seg.points)
 
     def _track(
@@ -507,6 +511,10 @@ class LivePipeline:
         samples = object_samples(X, topo)
         thr = change_threshold(self.background, self.seg_params)  # one per frame, for the three tests below
         behind = behind_near_object(depth, self.background, self.seg_params, samples, self.K_seg, self.T, arm, thr)
+        if self._last_cloud is not None and len(self._last_cloud):  # and what continues the object last seen
+            seen, _ = pixel_mask(self._last_cloud, self.K_seg, self.T, depth.shape)
+            behind |= behind_continuing(depth, self.background, self.seg_params, seen | behind, self.K_seg, self.T,
+                                        arm, self._support, thr)
         told = None  # a 1D object's low points: the object's colour or the table's
         if topo.kind == "1d" and colour is not None and self.colour_model is not None and \
                 colour.shape[:2] == self.colour_model.reference.shape[:2]:
@@ -542,6 +550,7 @@ class LivePipeline:
                                  margin_m=self.params.arm_margin_m)
         res = self.tracker.step(seg.points, tcp=tcp, gripper_closed=closed, hidden=hidden, tcp_rot=tcp_rot,
                                 open_space=open_space, behind_arm=behind_arm)
+        self._last_cloud = np.asarray(seg.points, np.float64)
         self._timings.update(self.tracker.last_timings_ms)
         p = self.params
         n = (p.background_confirm_2d if topo.kind == "2d" else p.background_confirm_1d) - 1

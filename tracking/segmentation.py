@@ -992,6 +992,37 @@ def behind_near_object(
     return out
 
 
+def behind_continuing(
+    depth: np.ndarray,
+    background: np.ndarray,
+    params: TrackingParams,
+    seeds: np.ndarray,
+    K: np.ndarray,
+    T_world_cam: np.ndarray,
+    arm_mask: np.ndarray | None,
+    support: tuple[np.ndarray, float] | None,
+    thr: np.ndarray,
+) -> np.ndarray:
+    """(H, W) bool: valid pixels significantly behind the background (H, W) m that a depth-continuous surface
+    standing above the table joins to the object's pixels ``seeds`` (H, W) bool (``grow_depth_region``,
+    ``grow_step_m``; the table plane ``support``, ``attach_min_height_m``; arm pixels left out).
+
+    The object moved behind where the references held something else (a hand, or the object itself): a surface
+    continuing the object's own is the object, not revealed background, however far the tracked keypoints lag
+    behind it (``behind_near_object`` asks for them within ``background_object_gap_m``, so a part the keypoints
+    had lost became background and stayed out of the cloud). thr: ``change_threshold(background)``."""
+    ok = valid_depth(depth, params) & (background > 0)
+    if arm_mask is not None:
+        ok &= ~arm_mask
+    if support is not None:
+        ok &= above_support(depth, K, T_world_cam, support, params.attach_min_height_m)
+    behind = ok & (depth - background > thr)
+    if not behind.any():
+        return behind
+    region = behind | (ok & (background - depth > thr))  # what lies behind the background, and in front of it
+    return grow_depth_region(depth, seeds & region, region, params.grow_step_m) & behind
+
+
 def update_background(
     background: np.ndarray,
     depth: np.ndarray,
