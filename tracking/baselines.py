@@ -12,6 +12,7 @@ from collections.abc import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
+from tracking.geometry import cloud_tree
 from tracking.params import TrackingParams
 from tracking.tracker import FrameResult, Tracker
 
@@ -68,7 +69,7 @@ def cpd_nonrigid(
 
 def nearest_neighbour(Y: np.ndarray, X: np.ndarray | cKDTree) -> np.ndarray:
     """Each keypoint Y (N, 3) m moved to its nearest point of the cloud X (M, 3) m (or its cKDTree) -> (N, 3)."""
-    tree = X if isinstance(X, cKDTree) else cKDTree(np.asarray(X, np.float64))
+    tree = cloud_tree(X)
     if tree.n == 0:
         return np.asarray(Y, np.float64).copy()
     return np.asarray(tree.data[tree.query(Y)[1]], np.float64)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 from scipy.sparse import csr_matrix
+from scipy.spatial import cKDTree
 
 
 def csr_graph(edges: np.ndarray, n: int, weights: np.ndarray | None = None) -> csr_matrix:
@@ -309,3 +310,8 @@ def object_image(
     uvs = uvs - np.array([c0, r0])
     mask = splat_mask(cloud, Ks, T_world_cam, (int(r1 - r0), int(c1 - c0)), radius_m)
     return mask, Ks, uvs, zmed / (f * s)
+
+def cloud_tree(cloud: np.ndarray | cKDTree) -> cKDTree:
+    """The cKDTree of a cloud (M, 3) m, or the tree itself when it is one (a caller that searches a frame's
+    cloud more than once builds it once)."""
+    return cloud if isinstance(cloud, cKDTree) else cKDTree(np.asarray(cloud, np.float64).reshape(-1, 3))

@@ -16,6 +16,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from tracking.anchors import detect_anchors_1d, detect_anchors_2d
+from tracking.geometry import cloud_tree
 from tracking.init import Initialisation, Topology, initialise
 from tracking.kernels import nearest, warm_up
 from tracking.metrics import chamfer_mm, edge_rmse_mm, segment_distances
@@ -855,7 +856,7 @@ class Tracker:
             return X
         held = self._held(len(X))
         Y = shorten_stretched(X, topo.edges, topo.rest, ~held, p.stretch_sweeps)
-        tree = cloud if isinstance(cloud, cKDTree) else cKDTree(np.asarray(cloud, np.float64).reshape(-1, 3))
+        tree = cloud_tree(cloud)
         seen = ~held if hidden is None else ~held & ~np.asarray(hidden, bool)
         Y = onto_local_plane(Y, tree, seen)
         return Y if edge_rmse_mm(Y, topo.edges, topo.rest) < before else X
@@ -879,8 +880,10 @@ class Tracker:
         assert self.topology is not None
         p = self.params
         topo = self.topology
-        tree = cloud if isinstance(cloud, cKDTree) else cKDTree(np.asarray(cloud, np.float64).reshape(-1, 3))
-        if topo.kind != "1d" or p.tube_mean_half <= 0 or tree.n < 3 or not len(topo.rest):
+        if topo.kind != "1d" or p.tube_mean_half <= 0 or not len(topo.rest):
+            return X
+        tree = cloud_tree(cloud)
+        if tree.n < 3:
             return X
         seen = ~self._held(len(X)) & (np.bincount(topo.edges.ravel(), minlength=len(X)) <= 2)
         if hidden is not None:
