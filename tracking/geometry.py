@@ -311,6 +311,7 @@ def object_image(
     mask = splat_mask(cloud, Ks, T_world_cam, (int(r1 - r0), int(c1 - c0)), radius_m)
     return mask, Ks, uvs, zmed / (f * s)
 
+
 def cloud_tree(cloud: np.ndarray | cKDTree) -> cKDTree:
     """The cKDTree of a cloud (M, 3) m, or the tree itself when it is one (a caller that searches a frame's
     cloud more than once builds it once)."""
