@@ -146,6 +146,25 @@ def test_smoothing():
     np.testing.assert_allclose(final[3:7, 0, 0], [0.2, 0.4, 0.6, 0.8])  # one rest length: a motion
 
 
+def test_final_keypoints_keep_a_grids_raw_frame_where_the_average_would_break_its_edges():
+    from tracking.tracker import final_keypoints
+
+    # a 2x2 grid of 1 m edges folds its far row over the near one between frames 3 and 4 (a re-lifted grid)
+    flat = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float64)
+    up = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 1], [1, 0, 1]], np.float64)
+    raw = np.stack([flat] * 4 + [up] * 4)
+    edges = np.array([[0, 1], [2, 3], [0, 2], [1, 3]])
+    grid = Topology("2d", edges, np.ones(4), np.arange(4), np.zeros(4, np.int64), [np.arange(2), np.arange(2, 4)],
+                    grid_shape=(2, 2))
+    blended = final_keypoints(raw, grid, replace(P, symmetric_window=5, smooth_gate=2.0, smooth_edge_slack_mm=1e9))
+    assert not np.allclose(blended[2:6], raw[2:6])  # the average of flat and folded: edges 0.7 m long
+    np.testing.assert_allclose(final_keypoints(raw, grid, replace(P, symmetric_window=5, smooth_gate=2.0)), raw)
+    moving = raw[:1] + np.linspace(0.0, 0.07, 8)[:, None, None] * np.array([1.0, 0.0, 0.0])  # a steady motion
+    moving[3] += [0.0, 0.0, 0.01]  # with 1 cm of noise in one frame, which the average takes out
+    out = final_keypoints(moving, grid, replace(P, symmetric_window=5, smooth_gate=2.0))
+    assert abs(out[3, 0, 2]) < 0.005
+
+
 def test_respace_chains_spaces_keypoints_along_their_curve_as_their_rest_lengths():
     from tracking.tangle import respace_chains
 

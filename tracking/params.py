@@ -174,6 +174,9 @@ class TrackingParams:
       causal_window, symmetric_window: moving-average windows, frames.
       smooth_gate: the symmetric average leaves out a pair of frames whose midpoint is farther than this many
         median rest lengths from the frame it smooths (a jump: ``tracker.smooth_symmetric``).
+      smooth_edge_slack_mm: a grid's frame whose smoothed edges are off their rest lengths by more than this (RMS,
+        mm) beyond its raw ones keeps its raw keypoints: the mean of two frames across a fold or a re-lifted grid is
+        not a shape the cloth took (``tracker.final_keypoints``).
       tube_mean_half, tube_mean_reach: a tracked 1D keypoint in sight (neither hidden nor held nor a junction) is
         reported at the mean of the cloud in its slice of the tube, within tube_mean_half median rest lengths of it
         along its chain and tube_mean_reach across, moved across the chain only (``solver.tube_mean``); each chain
@@ -297,6 +300,7 @@ class TrackingParams:
     causal_window: int = 3
     symmetric_window: int = 5
     smooth_gate: float = 2.0
+    smooth_edge_slack_mm: float = 1.0
     tube_mean_half: float = 0.25
     tube_mean_reach: float = 0.5
     stretch_abs_mm: float = 4.0

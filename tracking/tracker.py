@@ -19,7 +19,7 @@ from tracking.anchors import detect_anchors_1d, detect_anchors_2d
 from tracking.geometry import cloud_tree
 from tracking.init import Initialisation, Topology, initialise
 from tracking.kernels import nearest, warm_up
-from tracking.metrics import chamfer_mm, edge_rmse_mm, segment_distances
+from tracking.metrics import chamfer_mm, edge_lengths, edge_rmse_mm, segment_distances
 from tracking.params import TrackingParams
 from tracking.skeleton import LEAF
 from tracking.solver import (
@@ -442,15 +442,24 @@ def smooth_symmetric(traj: np.ndarray, window: int, gate_m: float = np.inf) -> n
 def final_keypoints(raw: np.ndarray, topology: Topology, params: TrackingParams) -> np.ndarray:
     """A clip's final keypoints (T, N, 3) m from its raw track (T, N, 3) m (rows of NaN: frames never tracked,
     kept so): the tracked frames smoothed by ``smooth_symmetric`` over ``params.symmetric_window`` frames, not
-    across a jump of more than ``params.smooth_gate`` median rest lengths; a 1D object's chains whose edge lengths
-    are off by more than ``params.respace_error`` median rest lengths (RMS) then spaced along their curves as their
-    rest lengths are (``respace_chains``, moves of at most ``params.respace_cap`` median rest lengths)."""
+    across a jump of more than ``params.smooth_gate`` median rest lengths, a grid's frames whose smoothed edges are
+    further off their rest lengths than their raw ones by more than ``params.smooth_edge_slack_mm`` (RMS) kept raw;
+    a 1D object's chains whose edge lengths are off by more than ``params.respace_error`` median rest lengths (RMS)
+    then spaced along their curves as their rest lengths are (``respace_chains``, moves of at most
+    ``params.respace_cap`` median rest lengths)."""
     final = np.array(raw, np.float64)
     ok = ~np.isnan(final).any(axis=(1, 2))
     rest = topology.rest
     if ok.any():
         gate = params.smooth_gate * float(np.median(rest)) if len(rest) else np.inf
-        final[ok] = smooth_symmetric(final[ok], params.symmetric_window, gate)
+        smoothed = smooth_symmetric(final[ok], params.symmetric_window, gate)
+        if topology.grid_shape is not None and len(rest):
+            def abs_mm(Y: np.ndarray) -> np.ndarray:  # (T,) each frame's edge RMSE, mm
+                return 1e3 * np.sqrt(np.mean((edge_lengths(Y, topology.edges) - rest) ** 2, axis=-1))
+
+            worse = abs_mm(smoothed) > abs_mm(final[ok]) + params.smooth_edge_slack_mm
+            smoothed[worse] = final[ok][worse]
+        final[ok] = smoothed
         if topology.kind == "1d" and params.respace_cap > 0 and len(rest):
             final[ok] = respace_chains(final[ok], topology, params.respace_cap * float(np.median(rest)),
                                        params.respace_error * float(np.median(rest)))
