@@ -130,6 +130,17 @@ class TrackingParams:
         fresh grid's edges add up to the rest lengths within this fraction (the contour outlines the whole
         cloth and nothing else; measured: 0.95-1.03 on twisted test-bed cloths, 0.84-0.93 over a fold in the
         project's simulator, whose hidden lower layer the contour cannot show, up to 1.23 as it closes).
+      cover_gap, cover_trigger: a grid is registered again to its frame's cloud (``tangle.cover_cloud``) when more
+        than cover_trigger of the cloud lies farther than cover_gap median rest lengths from the grid's surface (the
+        grid folded onto part of the sheet it sees, the rest of the sheet uncovered; below 0.05 on a right grid).
+      cover_gain, cover_abs_slack_mm: such a registration is kept when it leaves less than cover_gain of the share
+        uncovered before, fewer tangled cells (none where there were none) and an edge error (RMS, mm) at most
+        cover_abs_slack_mm above the solve's.
+      cover_iterations, cover_points, cover_pull_gap, cover_step, cover_keypoint_step, cover_sweeps: the
+        registration's iterations; the cloud points it samples; how far (median rest lengths) a cloud point may be
+        from the grid's surface before it pulls the surface's nearest point towards it, and the fraction of the way
+        it does; the fraction of the way each keypoint goes to its nearest cloud point (all of it from where the
+        camera sees through it); the edge sweeps after each iteration.
       fold_cos: a 1D keypoint chain has folded onto itself where the cosine between a keypoint's edge in and
         edge out is below this (turned back by more than 120 degrees over one keypoint spacing; the test
         bed's true centrelines sampled at the keypoint spacing stay above +0.5 in every rope clip).
@@ -284,6 +295,16 @@ class TrackingParams:
     grow_tol: float = 0.05
     grow_retrack_frames: int = 30
     relift_span_tol: float = 0.06
+    cover_gap: float = 0.35
+    cover_trigger: float = 0.1
+    cover_gain: float = 0.5
+    cover_abs_slack_mm: float = 1.0
+    cover_iterations: int = 30
+    cover_points: int = 800
+    cover_pull_gap: float = 0.15
+    cover_step: float = 0.7
+    cover_keypoint_step: float = 0.3
+    cover_sweeps: int = 8
     fold_cos: float = -0.5
     fold_span_min: float = 0.8
     fold_capture: float = 0.5

@@ -17,14 +17,17 @@ most ~57 degrees at a keypoint over the test bed's rope clips; a folded chain tu
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
 
 from tracking.anchors import contour_3d, lift_grid, skeleton_3d
 from tracking.init import Topology, polyline_arc
 from tracking.metrics import edge_lengths
 from tracking.params import TrackingParams
+from tracking.solver import relax_hidden
 
 
 def cell_corner_normals(X: np.ndarray, rows: int, cols: int) -> np.ndarray:
@@ -94,6 +97,118 @@ def relift_grid(
         ok = C[r, k] <= params.grasp_gate_m
         X[corners[k[ok]]] = hp[r[ok]]
     return X
+
+
+def surface_samples(shape: tuple[int, int], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Points spread over a row-major grid's cells, n x n intervals a cell, as each one's four cell corners (K, 4)
+    int64 keypoint indices and bilinear weights (K, 4): a grid X (N, 3) has them at ``einsum("kj,kjc->kc", W, X[I])``.
+    """
+    rows, cols = shape
+    idx = np.arange(rows * cols).reshape(rows, cols)
+    corners = (idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:])
+    t = np.linspace(0.0, 1.0, n + 1)
+    u, v = (a.ravel()[:, None, None] for a in np.meshgrid(t, t, indexing="ij"))
+    weights = ((1 - u) * (1 - v), (1 - u) * v, u * (1 - v), u * v)
+    shape3 = (len(t) ** 2, rows - 1, cols - 1)
+    I = np.stack([np.broadcast_to(c, shape3) for c in corners], -1).reshape(-1, 4)
+    W = np.stack([np.broadcast_to(w, shape3) for w in weights], -1).reshape(-1, 4)
+    return I, W
+
+
+def uncovered_share(X: np.ndarray, shape: tuple[int, int], cloud: np.ndarray, gap_m: float, max_points: int = 1500
+                    ) -> float:
+    """The share of the cloud (M, 3) m (up to max_points of it, evenly taken) farther than gap_m from the surface of
+    the grid X (N, 3) m of shape (rows, cols), sampled four times a cell each way: the part of the sheet in sight
+    that the grid leaves out (a grid folded onto one part of it; a right grid leaves under 0.05)."""
+    pts = np.asarray(cloud, np.float64).reshape(-1, 3)
+    if len(pts) == 0:
+        return 0.0
+    if len(pts) > max_points:
+        pts = pts[np.linspace(0, len(pts) - 1, max_points).astype(np.int64)]
+    I, W = surface_samples(shape, 4)
+    S = np.einsum("kj,kjc->kc", W, np.asarray(X, np.float64)[I])
+    return float((cKDTree(S).query(pts)[0] > gap_m).mean())
+
+
+def cover_cloud(
+    X0: np.ndarray, topology: Topology, cloud: np.ndarray, fixed_idx: np.ndarray, fixed_pos: np.ndarray,
+    params: TrackingParams, open_space: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> np.ndarray:
+    """A grid X0 (N, 3) m registered to cover its frame's cloud (M, 3) m at its rest lengths, the keypoints
+    fixed_idx (F,) int64 fixed at fixed_pos (F, 3) m (the held corners). Each of ``params.cover_iterations``
+    iterations: a cloud point farther than ``params.cover_pull_gap`` median rest lengths from the grid's surface
+    pulls the surface's nearest point ``params.cover_step`` of the way to it (shared among that point's four
+    corners by their bilinear weights); each keypoint goes ``params.cover_keypoint_step`` of the way to its nearest
+    cloud point (all of it where ``open_space`` says the camera sees through it); then ``params.cover_sweeps``
+    edge sweeps. The solve projects keypoints onto the cloud and so keeps a grid folded onto the part of the sheet
+    it covers; pulling from the uncovered cloud unfolds it. Returns (N, 3) float64 m."""
+    assert topology.grid_shape is not None
+    pts = np.asarray(cloud, np.float64).reshape(-1, 3)
+    if len(pts) > params.cover_points:
+        pts = pts[np.linspace(0, len(pts) - 1, params.cover_points).astype(np.int64)]
+    X = np.array(X0, np.float64)
+    if len(pts) == 0:
+        return X
+    tree = cKDTree(pts)
+    fixed_idx = np.asarray(fixed_idx, np.int64)
+    X[fixed_idx] = fixed_pos
+    movable = np.ones(len(X), bool)
+    movable[fixed_idx] = False
+    I, W = surface_samples(topology.grid_shape, 4)
+    gap = params.cover_pull_gap * float(np.median(topology.rest))
+    for _ in range(params.cover_iterations):
+        S = np.einsum("kj,kjc->kc", W, X[I])  # (K, 3) the grid's surface
+        d, nn = cKDTree(S).query(pts)
+        far = d > gap
+        if far.any():
+            f = pts[far] - S[nn[far]]  # (F, 3)
+            wi, ii = W[nn[far]], I[nn[far]]  # (F, 4)
+            pull = np.zeros_like(X)
+            total = np.zeros(len(X))
+            for j in range(4):
+                np.add.at(pull, ii[:, j], wi[:, j, None] * f)
+                np.add.at(total, ii[:, j], wi[:, j])
+            m = (total > 1e-9) & movable
+            X[m] += params.cover_step * pull[m] / total[m, None]
+        step = np.full(len(X), params.cover_keypoint_step)
+        if open_space is not None:
+            step[open_space(X)] = 1.0
+        nk = tree.query(X)[1]
+        X[movable] += step[movable, None] * (pts[nk[movable]] - X[movable])
+        X = relax_hidden(X, topology.edges, topology.rest, movable, params.cover_sweeps, params, topology.colours)
+    return X
+
+
+def hung_sheet(topology: Topology, fixed_idx: np.ndarray, fixed_pos: np.ndarray, cloud: np.ndarray
+               ) -> np.ndarray | None:
+    """A flat grid (N, 3) m hung from its two held corners, fixed_idx (2,) int64 at fixed_pos (2, 3) m, the two
+    corners of one side: its rows at their rest spacing in the direction, across the held side, in which the cloud
+    (M, 3) m spreads most. A start for ``cover_cloud`` that knows nothing of the track's last frame; None unless two
+    corners of one side are held."""
+    assert topology.grid_shape is not None
+    rows, cols = topology.grid_shape
+    if len(fixed_idx) != 2 or len(cloud) == 0:
+        return None
+    (ra, ca), (rb, cb) = (divmod(int(k), cols) for k in fixed_idx)
+    if (ra == rb) == (ca == cb):  # not two corners of one side
+        return None
+    A, B = np.asarray(fixed_pos, np.float64).reshape(2, 3)
+    e = topology.edges
+    along_row = np.abs(e[:, 0] - e[:, 1]) == 1
+    rest_col, rest_row = float(np.mean(topology.rest[along_row])), float(np.mean(topology.rest[~along_row]))
+    u = (B - A) / max(float(np.linalg.norm(B - A)), 1e-9)
+    pts = np.asarray(cloud, np.float64).reshape(-1, 3)
+    q = pts - A
+    q -= np.outer(q @ u, u)  # across the held side
+    v = np.linalg.eigh(q.T @ q)[1][:, -1]
+    if v @ q.mean(axis=0) < 0:
+        v = -v
+    r, c = np.divmod(np.arange(rows * cols), cols)
+    if ra == rb:  # held along a row: the other rows hang below it
+        s, off = (c - ca) / (cb - ca), np.abs(r - ra) * rest_row
+    else:
+        s, off = (r - ra) / (rb - ra), np.abs(c - ca) * rest_col
+    return A + s[:, None] * (B - A) + off[:, None] * v
 
 
 def chain_reversals(X: np.ndarray, chains: list[np.ndarray], cos_max: float) -> np.ndarray:

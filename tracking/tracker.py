@@ -37,10 +37,13 @@ from tracking.tangle import (
     captured,
     chain_edges,
     chain_reversals,
+    cover_cloud,
+    hung_sheet,
     relift_chains,
     relift_grid,
     respace_chains,
     tangled_cells,
+    uncovered_share,
     unfold_chains,
 )
 
@@ -619,7 +622,7 @@ class Tracker:
         X, matched = solve.X, solve.matched
         tangled, repaired = 0, False
         if self.topology.grid_shape is not None:
-            X, matched, tangled, repaired = self._untangle(X, matched, cloud, det, kinds, tcp, held)
+            X, matched, tangled, repaired = self._untangle(X, matched, cloud, det, kinds, tcp, held, open_space)
         elif self.topology.kind == "1d":
             X, matched, tangled, repaired = self._unfold(X, matched, cloud, det, kinds, tcp, hidden, soft, recapture)
         if behind_arm is not None and self.topology.kind == "1d" and len(cloud):
@@ -717,13 +720,18 @@ class Tracker:
     def _untangle(
         self, X: np.ndarray, matched: int, cloud: np.ndarray, det: np.ndarray, kinds: np.ndarray,
         tcp: np.ndarray | None, held: np.ndarray | None,
+        open_space: Callable[[np.ndarray], np.ndarray] | None = None,
     ) -> tuple[np.ndarray, int, int, bool]:
-        """A grid solution X (N, 3) m checked for tangles; a tangled one is solved again from a grid re-lifted
-        from the frame's cloud (M, 3) m in the track's correspondence (``relift_grid``), kept when it has fewer
-        tangled cells. Returns (X, anchors matched, tangled cells left, repaired)."""
+        """A grid solution X (N, 3) m checked for tangles and for the cloud (M, 3) m it leaves uncovered
+        (``_cover``); a tangled one is solved again from a grid re-lifted from the frame's cloud in the track's
+        correspondence (``relift_grid``), kept when it has fewer tangled cells. open_space: ``track_frame``'s.
+        Returns (X, anchors matched, tangled cells left, repaired)."""
         assert self.topology is not None and self.topology.grid_shape is not None
         rows, cols = self.topology.grid_shape
         bad = int(tangled_cells(X, rows, cols).sum())
+        covered = self._cover(X, cloud, tcp, held, bad, open_space)
+        if covered is not None:
+            return covered, matched, int(tangled_cells(covered, rows, cols).sum()), True
         if bad == 0:
             return X, matched, 0, False
         X0 = relift_grid(X, self.topology, cloud, self.K, self.T, self.params, held)
@@ -735,6 +743,40 @@ class Tracker:
         if bad2 < bad:
             return X2, m2, bad2, True
         return X, matched, bad, False
+
+    def _cover(
+        self, X: np.ndarray, cloud: np.ndarray, tcp: np.ndarray | None, held: np.ndarray | None, bad: int,
+        open_space: Callable[[np.ndarray], np.ndarray] | None,
+    ) -> np.ndarray | None:
+        """A grid X (N, 3) m (bad: its tangled cells) that leaves more than ``params.cover_trigger`` of the cloud
+        (M, 3) m uncovered (``uncovered_share``) registered to cover it (``cover_cloud``, the held keypoints at their
+        TCPs) from itself, from the grid re-lifted from the frame's contour and from a flat sheet hung from the held
+        corners (``hung_sheet``). Returns the registration that leaves the least uncovered of those that leave less
+        than ``params.cover_gain`` of the share before, fewer tangled cells (none if there were none) and an edge
+        error within ``params.cover_abs_slack_mm`` of X's; None if none does."""
+        topo, p = self.topology, self.params
+        assert topo is not None and topo.grid_shape is not None
+        rows, cols = topo.grid_shape
+        gap = p.cover_gap * float(np.median(topo.rest))
+        share = uncovered_share(X, topo.grid_shape, cloud, gap)
+        if len(cloud) < 10 or share < p.cover_trigger:
+            return None
+        fixed, at = np.zeros(0, np.int64), np.zeros((0, 3))
+        if tcp is not None and self.grasp_idx is not None:
+            g = np.flatnonzero(self.grasp_idx >= 0)
+            fixed, at = self.grasp_idx[g].astype(np.int64), np.asarray(tcp, np.float64).reshape(-1, 3)[g]
+        starts = [X, relift_grid(X, topo, cloud, self.K, self.T, p, held), hung_sheet(topo, fixed, at, cloud)]
+        limit = edge_rmse_mm(X, topo.edges, topo.rest) + p.cover_abs_slack_mm
+        best, least = None, p.cover_gain * share
+        for start in starts:
+            if start is None:
+                continue
+            Y = cover_cloud(start, topo, cloud, fixed, at, p, open_space)
+            left = uncovered_share(Y, topo.grid_shape, cloud, gap)
+            bad2 = int(tangled_cells(Y, rows, cols).sum())
+            if left < least and (bad2 < bad or bad2 == bad == 0) and edge_rmse_mm(Y, topo.edges, topo.rest) <= limit:
+                best, least = Y, left
+        return best
 
     def _unfold(
         self, X: np.ndarray, matched: int, cloud: np.ndarray, det: np.ndarray, kinds: np.ndarray,
@@ -938,6 +980,7 @@ class Tracker:
         seen[self.grasp_idx[(self.grasp_idx >= 0) & (self.grasp_idx < len(X))]] = False
         cd_seen = cd_mm if seen.all() or not seen.any() or not n_points else chamfer_mm(X[seen], cloud)
         jump = self.keypoints is not None and bool(np.median(np.linalg.norm(X - self.keypoints, axis=1)) > p.max_jump_m)
+        jump &= not (repaired and self.topology.grid_shape is not None)  # a grid re-laid on purpose
         bad = force_bad or jump or abs_mm > 1e3 * p.max_edge_rmse_m or cd_seen > 1e3 * p.max_chamfer_m
         self._bad = self._bad + 1 if bad else 0
         if not (force_bad or jump):
