@@ -242,3 +242,50 @@ def test_relifted_chains_keep_a_branched_ropes_keypoint_order() -> None:
     res = tr.step(cloud)
     assert res.repaired
     assert np.linalg.norm(res.keypoints - ok.keypoints, axis=1).max() < 0.02
+
+
+def _hanging_sheet(n: int = 6, side: float = 0.25) -> tuple[np.ndarray, Topology, np.ndarray]:
+    """A flat n x n grid (row-major) hanging in the x-z plane from its top row at z = 0.6 m, its topology, and a
+    dense cloud on it (M, 3) m, 5 mm apart."""
+    from tracking.init import cloth_topology
+
+    s = np.linspace(0.0, side, n)
+    X = np.stack([np.tile(s, n), np.zeros(n * n), np.repeat(0.6 - s, n)], axis=1)
+    d = np.arange(0.0, side + 1e-9, 0.005)
+    cloud = np.stack([np.tile(d, len(d)), np.zeros(len(d) ** 2), np.repeat(0.6 - d, len(d))], axis=1)
+    return X, cloth_topology(X, n, n), cloud
+
+
+def test_uncovered_share_is_the_part_of_the_cloud_beyond_the_grids_surface() -> None:
+    from tracking.tangle import uncovered_share
+
+    X, topo, cloud = _hanging_sheet()
+    gap = 0.35 * float(np.median(topo.rest))
+    assert uncovered_share(X, (6, 6), cloud, gap) == 0.0
+    folded = X.copy()
+    folded[18:] = np.tile(X[12:18], (3, 1))  # the lower three rows bunched up on the third
+    share = uncovered_share(folded, (6, 6), cloud, gap)
+    assert 0.3 < share < 0.6  # the lower half of the sheet, less the strip within the gap of the bunched rows
+    assert uncovered_share(X, (6, 6), np.zeros((0, 3)), gap) == 0.0
+
+
+def test_cover_cloud_unfolds_a_grid_folded_onto_half_the_sheet_at_its_rest_lengths() -> None:
+    from tracking.metrics import edge_rmse_mm
+    from tracking.tangle import cover_cloud, hung_sheet, uncovered_share
+
+    X, topo, cloud = _hanging_sheet()
+    r = float(np.median(topo.rest))
+    folded = X.copy()  # the lower half folded like an accordion under the upper half, its edges at rest length
+    for k, row in enumerate(range(3, 6), 1):
+        folded[6 * row:6 * row + 6] = X[12:18] + [0.0, 0.047 * (k % 2), -0.015 * k]
+    assert edge_rmse_mm(folded, topo.edges, topo.rest) < 4.0
+    assert uncovered_share(folded, (6, 6), cloud, 0.35 * r) > 0.3
+    held = np.array([0, 5])
+    Y = cover_cloud(folded, topo, cloud, held, X[held], P)
+    assert uncovered_share(Y, (6, 6), cloud, 0.35 * r) < 0.05
+    assert edge_rmse_mm(Y, topo.edges, topo.rest) < 2.0
+    np.testing.assert_allclose(Y[held], X[held])
+    assert np.abs(Y[30:] - X[30:]).max() < 0.3 * r  # the bottom row back at the bottom, in its order
+    H = hung_sheet(topo, held, X[held], cloud)  # the start that knows nothing of the last frame: the sheet itself
+    assert H is not None and np.abs(H - X).max() < 1e-9
+    assert hung_sheet(topo, np.array([0, 35]), X[[0, 35]], cloud) is None  # two opposite corners: no side held
