@@ -289,3 +289,22 @@ def test_cover_cloud_unfolds_a_grid_folded_onto_half_the_sheet_at_its_rest_lengt
     H = hung_sheet(topo, held, X[held], cloud)  # the start that knows nothing of the last frame: the sheet itself
     assert H is not None and np.abs(H - X).max() < 1e-9
     assert hung_sheet(topo, np.array([0, 35]), X[[0, 35]], cloud) is None  # two opposite corners: no side held
+
+
+def test_tracker_covers_a_sheet_its_grid_left_folded_and_goes_on_from_there() -> None:
+    from tracking.tangle import uncovered_share
+
+    X, topo, cloud = _hanging_sheet()
+    folded = X.copy()
+    for k, row in enumerate(range(3, 6), 1):
+        folded[6 * row:6 * row + 6] = X[12:18] + [0.0, 0.047 * (k % 2), -0.015 * k]
+    T = np.eye(4)
+    T[:3, 3] = [0.125, -1.0, 0.45]  # a camera 1 m in front of the sheet, looking along +y
+    T[:3, :3] = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+    tracker = Tracker(P, np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]]), T)
+    tracker.resume(topo, folded, np.array([0, 5]))
+    res = tracker.step(cloud, tcp=X[[0, 5]])
+    gap = P.cover_gap * float(np.median(topo.rest))
+    assert res.repaired
+    assert uncovered_share(res.keypoints, (6, 6), cloud, gap) < 0.05
+    assert tracker.keypoints is not None and uncovered_share(tracker.keypoints, (6, 6), cloud, gap) < 0.05
