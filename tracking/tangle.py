@@ -181,10 +181,10 @@ def cover_cloud(
 
 def hung_sheet(topology: Topology, fixed_idx: np.ndarray, fixed_pos: np.ndarray, cloud: np.ndarray
                ) -> np.ndarray | None:
-    """A flat grid (N, 3) m hung from its two held corners, fixed_idx (2,) int64 at fixed_pos (2, 3) m, the two
-    corners of one side: its rows at their rest spacing in the direction, across the held side, in which the cloud
-    (M, 3) m spreads most. A start for ``cover_cloud`` that knows nothing of the track's last frame; None unless two
-    corners of one side are held."""
+    """A flat grid (N, 3) m hung from its two held keypoints, fixed_idx (2,) int64 at fixed_pos (2, 3) m, of one row
+    or column (a cloth held by the two corners of one side): the other rows (columns) at their rest spacing in the
+    direction, across the held side, in which the cloud (M, 3) m spreads most. A start for ``cover_cloud`` that
+    knows nothing of the track's last frame; None unless the two held keypoints share a row or a column."""
     assert topology.grid_shape is not None
     rows, cols = topology.grid_shape
     if len(fixed_idx) != 2 or len(cloud) == 0:
