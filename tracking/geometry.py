@@ -5,6 +5,8 @@ Camera frame is OpenCV's (x right, y down, z forward); ``T_world_cam`` (4, 4) ma
 
 from __future__ import annotations
 
+from functools import cache
+
 import cv2
 import numpy as np
 from scipy.sparse import csr_matrix
@@ -259,6 +261,24 @@ def edge_samples(X: np.ndarray, edges: np.ndarray, n: int) -> np.ndarray:
     t = np.linspace(0.0, 1.0, max(2, n))[None, :, None]
     a, b = X[edges[:, 0]][:, None, :], X[edges[:, 1]][:, None, :]
     return (a + t * (b - a)).reshape(-1, 3)
+
+
+@cache
+def cell_samples(shape: tuple[int, int], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Points spread over a row-major grid's cells, n + 1 to a side of each cell (corners included), as their four
+    cell corners (K, 4) int64 keypoint indices and bilinear weights (K, 4): a grid X (N, 3) m has them at
+    ``einsum("kj,kjc->kc", W, X[I])``. Cached per (shape, n) and read-only: one grid's are built once a clip."""
+    rows, cols = shape
+    idx = np.arange(rows * cols).reshape(rows, cols)
+    corners = (idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:])
+    t = np.linspace(0.0, 1.0, n + 1)
+    u, v = (a.ravel()[:, None, None] for a in np.meshgrid(t, t, indexing="ij"))
+    weights = ((1 - u) * (1 - v), (1 - u) * v, u * (1 - v), u * v)
+    shape3 = (len(t) ** 2, rows - 1, cols - 1)
+    I = np.stack([np.broadcast_to(c, shape3) for c in corners], -1).reshape(-1, 4)
+    W = np.stack([np.broadcast_to(w, shape3) for w in weights], -1).reshape(-1, 4)
+    I.flags.writeable = W.flags.writeable = False
+    return I, W
 
 
 def farthest_point_sampling(points: np.ndarray, n: int, seeds: np.ndarray | None = None) -> np.ndarray:

@@ -23,6 +23,7 @@ from tracking.classify import classify_object
 from tracking.colour import ColourModel, classify, measure_object
 from tracking.geometry import (
     behind_nearest_occluder,
+    cell_samples,
     decimated_intrinsics,
     decimation_stride,
     edge_samples,
@@ -106,14 +107,8 @@ def object_samples(X: np.ndarray, topology: Topology, n: int = 6) -> np.ndarray:
     pts = edge_samples(X, topology.edges, n)
     if topology.grid_shape is None:
         return pts
-    R, C = topology.grid_shape
-    G = X.reshape(R, C, 3)
-    t = np.linspace(0.0, 1.0, max(2, n))
-    u, v = t[None, :, None], t[:, None, None]
-    a, b = G[:-1, :-1][:, :, None, None], G[:-1, 1:][:, :, None, None]
-    c, d = G[1:, :-1][:, :, None, None], G[1:, 1:][:, :, None, None]
-    cells = (1 - v) * ((1 - u) * a + u * b) + v * ((1 - u) * c + u * d)  # (R-1, C-1, n, n, 3)
-    return np.concatenate([pts, cells.reshape(-1, 3)])
+    I, W = cell_samples(topology.grid_shape, max(2, n) - 1)
+    return np.concatenate([pts, np.einsum("kj,kjc->kc", W, X[I])])
 
 
 class LivePipeline:

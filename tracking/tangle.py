@@ -24,6 +24,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from tracking.anchors import contour_3d, lift_grid, skeleton_3d
+from tracking.geometry import cell_samples
 from tracking.init import Topology, polyline_arc
 from tracking.metrics import edge_lengths
 from tracking.params import TrackingParams
@@ -99,22 +100,6 @@ def relift_grid(
     return X
 
 
-def surface_samples(shape: tuple[int, int], n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Points spread over a row-major grid's cells, n x n intervals a cell, as each one's four cell corners (K, 4)
-    int64 keypoint indices and bilinear weights (K, 4): a grid X (N, 3) has them at ``einsum("kj,kjc->kc", W, X[I])``.
-    """
-    rows, cols = shape
-    idx = np.arange(rows * cols).reshape(rows, cols)
-    corners = (idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:])
-    t = np.linspace(0.0, 1.0, n + 1)
-    u, v = (a.ravel()[:, None, None] for a in np.meshgrid(t, t, indexing="ij"))
-    weights = ((1 - u) * (1 - v), (1 - u) * v, u * (1 - v), u * v)
-    shape3 = (len(t) ** 2, rows - 1, cols - 1)
-    I = np.stack([np.broadcast_to(c, shape3) for c in corners], -1).reshape(-1, 4)
-    W = np.stack([np.broadcast_to(w, shape3) for w in weights], -1).reshape(-1, 4)
-    return I, W
-
-
 def uncovered_share(X: np.ndarray, shape: tuple[int, int], cloud: np.ndarray, gap_m: float, max_points: int = 1500
                     ) -> float:
     """The share of the cloud (M, 3) m (up to max_points of it, evenly taken) farther than gap_m from the surface of
@@ -125,7 +110,7 @@ def uncovered_share(X: np.ndarray, shape: tuple[int, int], cloud: np.ndarray, ga
         return 0.0
     if len(pts) > max_points:
         pts = pts[np.linspace(0, len(pts) - 1, max_points).astype(np.int64)]
-    I, W = surface_samples(shape, 4)
+    I, W = cell_samples(shape, 4)
     S = np.einsum("kj,kjc->kc", W, np.asarray(X, np.float64)[I])
     return float((cKDTree(S).query(pts)[0] > gap_m).mean())
 
@@ -154,7 +139,7 @@ def cover_cloud(
     X[fixed_idx] = fixed_pos
     movable = np.ones(len(X), bool)
     movable[fixed_idx] = False
-    I, W = surface_samples(topology.grid_shape, 4)
+    I, W = cell_samples(topology.grid_shape, 4)
     gap = params.cover_pull_gap * float(np.median(topology.rest))
     for _ in range(params.cover_iterations):
         S = np.einsum("kj,kjc->kc", W, X[I])  # (K, 3) the grid's surface

@@ -731,7 +731,7 @@ class Tracker:
         bad = int(tangled_cells(X, rows, cols).sum())
         covered = self._cover(X, cloud, tcp, held, bad, open_space)
         if covered is not None:
-            return covered, matched, int(tangled_cells(covered, rows, cols).sum()), True
+            return covered[0], matched, covered[1], True
         if bad == 0:
             return X, matched, 0, False
         X0 = relift_grid(X, self.topology, cloud, self.K, self.T, self.params, held)
@@ -747,13 +747,13 @@ class Tracker:
     def _cover(
         self, X: np.ndarray, cloud: np.ndarray, tcp: np.ndarray | None, held: np.ndarray | None, bad: int,
         open_space: Callable[[np.ndarray], np.ndarray] | None,
-    ) -> np.ndarray | None:
+    ) -> tuple[np.ndarray, int] | None:
         """A grid X (N, 3) m (bad: its tangled cells) that leaves more than ``params.cover_trigger`` of the cloud
         (M, 3) m uncovered (``uncovered_share``) registered to cover it (``cover_cloud``, the held keypoints at their
         TCPs) from itself, from the grid re-lifted from the frame's contour and from a flat sheet hung from the held
         corners (``hung_sheet``). Returns the registration that leaves the least uncovered of those that leave less
         than ``params.cover_gain`` of the share before, fewer tangled cells (none if there were none) and an edge
-        error within ``params.cover_abs_slack_mm`` of X's; None if none does."""
+        error within ``params.cover_abs_slack_mm`` of X's, with its tangled cells; None if none does."""
         topo, p = self.topology, self.params
         assert topo is not None and topo.grid_shape is not None
         rows, cols = topo.grid_shape
@@ -775,7 +775,7 @@ class Tracker:
             left = uncovered_share(Y, topo.grid_shape, cloud, gap)
             bad2 = int(tangled_cells(Y, rows, cols).sum())
             if left < least and (bad2 < bad or bad2 == bad == 0) and edge_rmse_mm(Y, topo.edges, topo.rest) <= limit:
-                best, least = Y, left
+                best, least = (Y, bad2), left
         return best
 
     def _unfold(
