@@ -10,8 +10,8 @@ from tracking.kernels import nearest
 
 
 def edge_lengths(X: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """Edge lengths (..., E) m of keypoints X (..., N, 3) m over edges (E, 2) (one frame or a stack of them)."""
-    return np.linalg.norm(X[..., edges[:, 0], :] - X[..., edges[:, 1], :], axis=-1)
+    """Edge lengths (E,) m of keypoints X (N, 3) m over edges (E, 2)."""
+    return np.linalg.norm(X[edges[:, 0]] - X[edges[:, 1]], axis=1)
 
 
 def edge_rmse_mm(X: np.ndarray, edges: np.ndarray, rest: np.ndarray) -> float:

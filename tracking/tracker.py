@@ -19,7 +19,7 @@ from tracking.anchors import detect_anchors_1d, detect_anchors_2d
 from tracking.geometry import cloud_tree
 from tracking.init import Initialisation, Topology, initialise
 from tracking.kernels import nearest, warm_up
-from tracking.metrics import chamfer_mm, edge_lengths, edge_rmse_mm, segment_distances
+from tracking.metrics import chamfer_mm, edge_rmse_mm, segment_distances
 from tracking.params import TrackingParams
 from tracking.skeleton import LEAF
 from tracking.solver import (
@@ -457,10 +457,8 @@ def final_keypoints(raw: np.ndarray, topology: Topology, params: TrackingParams)
         gate = params.smooth_gate * float(np.median(rest)) if len(rest) else np.inf
         smoothed = smooth_symmetric(final[ok], params.symmetric_window, gate)
         if topology.grid_shape is not None and len(rest):
-            def abs_mm(Y: np.ndarray) -> np.ndarray:  # (T,) each frame's edge RMSE, mm
-                return 1e3 * np.sqrt(np.mean((edge_lengths(Y, topology.edges) - rest) ** 2, axis=-1))
-
-            worse = abs_mm(smoothed) > abs_mm(final[ok]) + params.smooth_edge_slack_mm
+            worse = np.array([edge_rmse_mm(a, topology.edges, rest) > edge_rmse_mm(b, topology.edges, rest)
+                              + params.smooth_edge_slack_mm for a, b in zip(smoothed, final[ok], strict=True)])
             smoothed[worse] = final[ok][worse]
         final[ok] = smoothed
         if topology.kind == "1d" and params.respace_cap > 0 and len(rest):
