@@ -509,6 +509,10 @@ VARIANTS: list[dict[str, Any]] = [
          camera=[0.95, -0.35, 1.65, 0.5, -0.45, 0.2]),
     dict(name="cloth_medium_c406", obj="cloth", speed="medium", seconds=5, seed=406,
          camera=[1.25, -1.05, 0.95, 0.5, -0.45, 0.25]),
+    dict(name="cloth_fast_c407", obj="cloth", speed="fast", seconds=5, seed=407,
+         camera=[0.2, -1.3, 1.3, 0.5, -0.4, 0.25], rgb=[0.2, 0.6, 0.9]),
+    dict(name="cloth_medium_c408", obj="cloth", speed="medium", seconds=5, seed=408,
+         camera=[1.3, -0.9, 1.55, 0.5, -0.45, 0.25], rgb=[0.9, 0.5, 0.2]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
