@@ -513,6 +513,30 @@ def test_a_cloth_corner_the_hand_hides_beyond_the_grasp_gate_is_still_put_at_its
     assert pipe.tracker.grasp_idx[1] < 0
 
 
+def test_a_cloth_corner_the_hand_hides_within_the_grasp_gate_gets_the_hidden_length_too() -> None:
+    """A cloth seen 6 cm short of a TCP (within ``grasp_gate_m``), the hand covering the way: the gate is that
+    distance plus ``grasp_gate_m``, since where the hand hides the corner the contour's corner may lie farther than
+    the nearest seen point (cloth_medium_c408: seen 73 mm from the TCP, its contour's corner 86 mm). A rope's end
+    keeps the plain gate there."""
+    from tracking.pipeline import LivePipeline
+
+    K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
+    x, y = np.meshgrid(np.linspace(-0.2, 0.2, 81), np.linspace(-0.15, 0.15, 61))
+    cloud = np.stack([x.ravel(), y.ravel(), np.ones(x.size)], axis=1)
+    tcp = np.array([[-0.2, -0.15, 1.0], [0.26, -0.15, 1.0]])  # the second 6 cm beyond the seen top corner
+    gates = {}
+    for kind in ("2d", "1d"):
+        pipe = LivePipeline(P, K, np.eye(4), kind)
+        h, w = pipe.decimate(np.zeros((480, 640))).shape
+        u = pipe.K_seg[0, 0] * 0.2 + pipe.K_seg[0, 2]  # a hand over x > 0.2 around the top side
+        v0, v1 = pipe.K_seg[1, 2] - pipe.K_seg[1, 1] * 0.2, pipe.K_seg[1, 2] - pipe.K_seg[1, 1] * 0.1
+        hand = np.zeros((h, w), bool)
+        hand[int(v0): int(v1) + 1, int(u):] = True
+        gates[kind] = pipe.grasp_gates(cloud, hand, tcp)
+    assert gates["2d"][0] == P.grasp_gate_m and gates["2d"][1] == pytest.approx(0.06 + P.grasp_gate_m, abs=1e-6)
+    np.testing.assert_array_equal(gates["1d"], [P.grasp_gate_m, P.grasp_gate_m])
+
+
 def test_grown_segmentation_with_the_table_plane_takes_the_still_part_of_a_hanging_sheet(cam):
     """Only the upper half of a sheet hanging in front of the table moved: growth over changed pixels keeps
     that half; with the reference's table plane it also crosses the still lower half, and never the table."""

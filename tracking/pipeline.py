@@ -358,14 +358,16 @@ class LivePipeline:
         seen in the cloud (N, 3) m: ``grasp_gate_m``, or, where the straight way from the cloud's nearest point to
         the TCP is hidden (behind the arm: decimated mask; or outside the image: ``gaps_hidden``), that point's
         distance plus ``grasp_gate_m``: a hand seen across its fingers, or an arm in front of the rope or cloth
-        it holds, hides the end whatever the length hidden. None without TCPs, arm or cloud."""
+        it holds, hides the end whatever the length hidden. A 1D end's nearest point is asked only when it lies
+        beyond ``grasp_gate_m``; a cloth's always: its contour's corner, where the hand hides it, may lie farther
+        than its nearest seen point (cloth_medium_c408: 73 and 86 mm). None without TCPs, arm or cloud."""
         if tcp is None or arm is None or len(cloud) == 0:
             return None
         p = self.seg_params
         tcp = np.asarray(tcp, np.float64).reshape(-1, 3)
         d, i = cKDTree(cloud).query(tcp)
-        far = d > p.grasp_gate_m
-        return np.where(self._hand_hides(cloud, tcp, arm, i, far), d + p.grasp_gate_m, p.grasp_gate_m)
+        ask = d > p.grasp_gate_m if self.kind != "2d" else np.ones(len(d), bool)
+        return np.where(self._hand_hides(cloud, tcp, arm, i, ask), d + p.grasp_gate_m, p.grasp_gate_m)
 
     def _grow_free(
         self, depth: np.ndarray, seg: Segmentation, arm: np.ndarray | None, held: np.ndarray
