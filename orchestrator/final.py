@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from orchestrator.fsutil import fsync_dir
+from orchestrator.procutil import popen_nice
 
 log = logging.getLogger(__name__)
 
@@ -324,10 +325,6 @@ class FinalJob:
     result: dict[str, Any] | None = None
 
 
-def _lower_priority() -> None:
-    os.nice(10)
-
-
 class FinalTracker:
     """Finalises runs one at a time in a nice-10 child process, on a thread of the session.
 
@@ -417,9 +414,9 @@ class FinalTracker:
                 "software": self.software}
         with open(self.out_dir / "final.log", "ab") as logf:
             try:
-                proc = subprocess.Popen([sys.executable, "-m", "orchestrator.final"], stdin=subprocess.PIPE,
-                                        stdout=subprocess.PIPE, stderr=logf, preexec_fn=_lower_priority,
-                                        start_new_session=True)  # signals reach the session, which stops this
+                proc = popen_nice([sys.executable, "-m", "orchestrator.final"], stdin=subprocess.PIPE,
+                                  stdout=subprocess.PIPE, stderr=logf,
+                                  start_new_session=True)  # signals reach the session, which stops this
             except OSError as e:
                 return {"status": "error", "reason": f"could not start: {e}", "episodes": [f.name for f in job.files]}
             with self._lock:

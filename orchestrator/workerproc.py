@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 from orchestrator.bus import local_endpoints
 from orchestrator.config import Config
+from orchestrator.procutil import popen_nice
 
 log = logging.getLogger(__name__)
 
@@ -35,11 +35,6 @@ class WorkerProcess:
         return self.proc.returncode
 
 
-def _lower_priority() -> None:
-    """Run the worker below the capture loop: on a small machine capture must never starve."""
-    os.nice(10)
-
-
 def start_worker(config: Config, out_dir: Path, extra_args: list[str] | None = None) -> WorkerProcess:
     """Launch the worker with the session's config (as JSON), connected to its listen endpoints.
 
@@ -56,8 +51,8 @@ def start_worker(config: Config, out_dir: Path, extra_args: list[str] | None = N
         cmd += ["--connect", e]
     cmd += extra_args or []
     with open(log_path, "ab") as logf:
-        proc = subprocess.Popen(
-            cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, preexec_fn=_lower_priority,
+        proc = popen_nice(
+            cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             start_new_session=True,  # a terminal's Ctrl-C reaches the session only, which stops the worker itself
         )
     return WorkerProcess(proc, log_path)

@@ -311,3 +311,19 @@ def test_the_summary_says_how_many_final_frames_are_flagged_tangled(tmp_path: Pa
     assert "final keypoints  : 1 run(s), 300 of 300 frames of 2 episode(s)\n" in summary.text() + "\n"
     summary.final_keypoints = {**fk, "tangled_frames": 12}
     assert "; 12 frame(s) flagged tangled" in summary.text()
+
+
+def test_popen_nice_lowers_the_child_from_the_parent_side() -> None:
+    """The final tracker and the worker start through popen_nice: the child runs NICE below the caller, with
+    no preexec_fn (Python in a forked child of a threaded process can hang before exec)."""
+    import os
+
+    from orchestrator.procutil import NICE, popen_nice
+
+    proc = popen_nice([sys.executable, "-c", "import os, sys; sys.stdin.readline(); print(os.nice(0))"],
+                      stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    out, _ = proc.communicate(b"go\n", timeout=60)
+    assert proc.returncode == 0
+    assert int(out) == min(19, os.getpriority(os.PRIO_PROCESS, 0) + NICE)
+    with pytest.raises(ValueError, match="preexec_fn"):
+        popen_nice([sys.executable, "-c", "pass"], preexec_fn=lambda: None)
