@@ -654,6 +654,42 @@ def test_table_level_points_go_but_a_flat_objects_beside_where_it_lay():
     assert len(select_clusters_near(lying, lab2, lying[::3], P, table, flat=False)) == 0
 
 
+def test_a_cloth_side_hanging_edge_on_from_the_hand_is_kept_chained_from_its_held_corner():
+    # a cloth's side turned edge-on below the hand lifts to single points ~2 cm apart going away from the camera:
+    # DBSCAN calls them noise, and the grid that left them (bunched on the sheet below) keeps nothing near them;
+    # chained from the held corner in steps of at most tip_step_m they are kept, stray points are not
+    from dataclasses import replace
+
+    from tracking.init import Topology, grid_topology
+    from tracking.segmentation import dbscan_labels, select_clusters_near
+    from tracking.tracker import held_seeds
+
+    rng = np.random.default_rng(2)
+    sheet = rng.uniform([0.12, -0.15, 0.0], [0.3, 0.15, 0.004], (600, 3))  # the seen part, 12-30 cm from the hand
+    tcp = np.array([0.0, -0.15, 0.0])
+    strip = tcp + np.linspace(0.018, 0.09, 5)[:, None] * np.array([0.6, 0.0, 0.8])  # steps of 1.8 cm
+    stray = np.array([[0.0, 0.1, 0.15], [-0.06, -0.15, -0.08]])  # 25 cm from the hand; 10 cm, but 5 cm off the strip
+    pts = np.concatenate([sheet, strip, stray])
+    lab = dbscan_labels(pts, P.dbscan_eps_m, P.dbscan_min_points)
+    assert (lab[600:] == -1).all()
+    gx, gy = np.meshgrid(np.linspace(0.15, 0.3, 6), np.linspace(-0.15, 0.15, 6))
+    grid = np.stack([gx.ravel(), gy.ravel(), np.zeros(36)], axis=1)  # where the grid lay: on the sheet
+    grid[0] = tcp  # its held corner at the TCP
+    edges, rest = grid_topology(6, 6, 0.06, 0.06)
+    topo = Topology("2d", edges, rest, np.zeros(0, np.int64), np.zeros(0, np.int64), [], grid_shape=(6, 6))
+    seeds = held_seeds(grid, topo, np.array([0, -1]))
+    assert seeds.shape == (1, 7) and np.allclose(seeds[0, :3], tcp)
+    assert np.isclose(seeds[0, 6], 0.6)  # the far corner, 10 edges of 6 cm away along the grid
+    kept = select_clusters_near(pts, lab, grid, P, held=seeds)
+    assert len(kept) == 605
+    np.testing.assert_array_equal(kept[-5:], strip)
+    assert len(select_clusters_near(pts, lab, grid, P, flat=False, held=seeds)) < 605  # a tube: its tips' rule
+    alone = select_clusters_near(pts, lab, grid, P)  # without: only the strip's point within track_attach_m of it
+    assert len(alone) == 601 and np.array_equal(alone[-1], strip[0])
+    assert held_seeds(grid, topo, np.array([-1, -1])) is None  # nothing held: nothing to chain from
+    assert held_seeds(grid, replace(topo, grid_shape=None), np.array([0, -1])) is None  # a rope: its tips' rule
+
+
 def test_a_tubes_cluster_is_kept_only_near_where_the_object_was():
     # the table's noise beside a rope joins the rope's cluster and trails 15 cm away from it: a rope (not flat)
     # keeps the points within track_gate_m of where it was a frame ago, a cloth (flat) its whole cluster

@@ -56,6 +56,10 @@ class TrackingParams:
         last edge points, chained to it in steps of at most tip_step_m (m): a branch hanging towards or away from
         the camera lifts to a few points a decimated pixel or two wide, too sparse for DBSCAN and beyond
         track_attach_m of the previous object, and its keypoints bunched at the end of what was kept (0: off).
+      held_chain: a cloth's held corners take the points DBSCAN left out chained to them in steps of at most
+        tip_step_m (m), any direction, within the sheet's reach over its rest lengths (``tracker.held_seeds``): a
+        side turned edge-on below the hand lifts to points several centimetres apart in depth, and once the grid
+        has left it nothing near the previous object keeps them.
       colour_band_m, colour_min_separation, colour_radius_m: with the frame's colour, a 1D object's left-out points
         less than colour_band_m (m) above the table (the height the table's stereo noise reaches beside a part
         lying on it) stay out where their colour is the table's (``tracking.colour``): the object's where a pixel
@@ -248,6 +252,7 @@ class TrackingParams:
     tip_reach_m: float = 0.06
     tip_step_m: float = 0.03
     tip_cone_cos: float = 0.9
+    held_chain: bool = True
     colour_band_m: float = 0.01
     colour_min_separation: float = 0.05
     colour_radius_m: float = 0.008

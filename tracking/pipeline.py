@@ -51,7 +51,7 @@ from tracking.segmentation import (
     unchanged_object_pixels,
     update_background,
 )
-from tracking.tracker import FrameResult, Tracker, TrackStatus, free_tips
+from tracking.tracker import FrameResult, Tracker, TrackStatus, free_tips, held_seeds
 
 
 @dataclass(frozen=True)
@@ -518,9 +518,10 @@ class LivePipeline:
             told = partial(classify, colour=colour, model=self.colour_model, K=self.K_seg, T_world_cam=self.T,
                            radius_m=self.params.colour_radius_m)
         tips = free_tips(X, topo.edges, self.tracker.grasp_idx) if topo.kind == "1d" else None
+        held = held_seeds(X, topo, self.tracker.grasp_idx)  # a grid's held corners, else None
         seg = segment_against_background(
             depth, self.background, self.K_seg, self.T, self.seg_params, arm, X, behind, self._support, samples, thr,
-            flat=topo.kind == "2d", colour=told, tips=tips,
+            flat=topo.kind == "2d", colour=told, tips=tips, held=held,
         )
         if topo.kind == "1d":
             seg = complete_thin_parts(depth, seg, self.K_seg, self.T, self.seg_params, arm, self._support)

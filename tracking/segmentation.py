@@ -395,6 +395,7 @@ def select_clusters_near(
     points: np.ndarray, labels: np.ndarray, keypoints: np.ndarray, params: TrackingParams,
     support: tuple[np.ndarray, float] | None = None, samples: np.ndarray | None = None, flat: bool = True,
     colour: Callable[[np.ndarray], np.ndarray] | None = None, tips: np.ndarray | None = None,
+    held: np.ndarray | None = None,
 ) -> np.ndarray:
     """Clusters with a point within ``track_gate_m`` of the previous keypoints (N, 3) -> (M, 3) float64, m.
 
@@ -419,7 +420,10 @@ def select_clusters_near(
     colour tells them apart where the table's colour is not the object's).
     tips: (T, 6) m the free tips of an object that cannot lie flat (``tracker.free_tips``): the left-out points
     that continue them are kept too (``tip_continuations`` with ``tip_reach_m``, ``tip_step_m``, ``tip_cone_cos``;
-    those low above the table by colour, as above)."""
+    those low above the table by colour, as above).
+    held: (H, 7) m a flat object's held corners (``tracker.held_seeds``: position, a zero direction, the sheet's
+    reach from it): with ``held_chain`` the left-out points chained to them in steps of at most ``tip_step_m``
+    within that reach are kept, in any direction (a side hanging edge-on from the hand)."""
     ok = labels >= 0
     if len(keypoints) == 0 or len(points) == 0:
         return np.zeros((0, 3))
@@ -459,6 +463,10 @@ def select_clusters_near(
     cand = cand[_near_points(points[cand], ref, attach)]
     if not flat:
         cand = off_table(cand)
+    if held is not None and len(held) and flat and params.held_chain:
+        pool = np.flatnonzero(loose)
+        for t in np.asarray(held, np.float64).reshape(-1, 7):  # any direction: cosine -1
+            keep[pool[tip_continuations(points[pool], t[None, :6], float(t[6]), params.tip_step_m, -1.0)]] = True
     if tips is not None and len(tips) and not flat and params.tip_reach_m > 0:
         tips = np.asarray(tips, np.float64).reshape(-1, 6)
         pool = np.flatnonzero(loose)
@@ -490,10 +498,11 @@ def _cluster(
     flat: bool = True,
     colour: Callable[[np.ndarray], np.ndarray] | None = None,
     tips: np.ndarray | None = None,
+    held: np.ndarray | None = None,
 ) -> Segmentation:
     """Lift foreground (H, W) bool pixels, voxelise, DBSCAN and select the object clusters
     (``select_clusters_near`` with prev_keypoints, the table plane ``support``, ``samples``, ``flat``,
-    ``colour`` and ``tips``, else the largest)."""
+    ``colour``, ``tips`` and ``held``, else the largest)."""
     s = max(1, params.lift_stride)
     sub = np.zeros_like(fg)
     sub[::s, ::s] = fg[::s, ::s]
@@ -504,7 +513,7 @@ def _cluster(
     if prev_keypoints is None:
         obj = select_largest_clusters(vox, labels, params)
     else:
-        obj = select_clusters_near(vox, labels, prev_keypoints, params, support, samples, flat, colour, tips)
+        obj = select_clusters_near(vox, labels, prev_keypoints, params, support, samples, flat, colour, tips, held)
     return Segmentation(obj, len(pts), n_clusters)
 
 
@@ -1140,6 +1149,7 @@ def segment_against_background(
     flat: bool = True,
     colour: Callable[[np.ndarray], np.ndarray] | None = None,
     tips: np.ndarray | None = None,
+    held: np.ndarray | None = None,
 ) -> Segmentation:
     """Per-frame segmentation: pixels in front of the background minus arms, clustered.
 
@@ -1149,9 +1159,9 @@ def segment_against_background(
     (``support_plane``), samples: (S, 3) m points along the previous object (``select_clusters_near``).
     thr: ``change_threshold(background)`` when the caller has it. flat: the object can lie flat on the table
     (``select_clusters_near``), colour: the frame's ``tracking.colour.classify`` of points (``select_clusters_near``),
-    tips: the object's free tips (``select_clusters_near``).
+    tips: the object's free tips, held: a flat object's held corners (``select_clusters_near``).
     """
     fg = foreground_mask(depth, background, params, arm_mask, thr)
     if extra is not None:
         fg |= extra
-    return _cluster(depth, fg, K, T_world_cam, params, prev_keypoints, support, samples, flat, colour, tips)
+    return _cluster(depth, fg, K, T_world_cam, params, prev_keypoints, support, samples, flat, colour, tips, held)

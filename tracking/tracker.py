@@ -13,6 +13,8 @@ from enum import Enum
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import shortest_path
 from scipy.spatial import cKDTree
 
 from tracking.anchors import detect_anchors_1d, detect_anchors_2d
@@ -241,6 +243,22 @@ def free_tips(X: np.ndarray, edges: np.ndarray, grasp_idx: np.ndarray | None) ->
     n = np.linalg.norm(d, axis=1)
     ok = n > 1e-9
     return np.hstack([X[e[ok, 0]], d[ok] / n[ok, None]]).astype(np.float64).reshape(-1, 6)
+
+
+def held_seeds(X: np.ndarray, topology: Topology, grasp_idx: np.ndarray | None) -> np.ndarray | None:
+    """(H, 7) float64: a grid's held keypoints of X (N, 3) m, each one's position (3,) m, a zero direction (3,) and
+    the reach (m) of the sheet from it, the longest path over the rest lengths (``segmentation.select_clusters_near``:
+    a side hanging edge-on from the hand lifts to points too sparse for DBSCAN); None for other objects."""
+    if topology.grid_shape is None or grasp_idx is None:
+        return None
+    g = np.asarray(grasp_idx, np.int64).reshape(-1)
+    g = g[(g >= 0) & (g < len(X))]
+    if not len(g):
+        return None
+    e = np.asarray(topology.edges, np.int64).reshape(-1, 2)
+    graph = coo_matrix((np.asarray(topology.rest, np.float64), (e[:, 0], e[:, 1])), shape=(len(X), len(X)))
+    reach = shortest_path(graph, directed=False, indices=g).max(axis=1)
+    return np.hstack([X[g], np.zeros((len(g), 3)), reach[:, None]]).astype(np.float64)
 
 
 def cloudless(topology: Topology, X: np.ndarray, cloud: np.ndarray | cKDTree, reach_m: float) -> np.ndarray:
