@@ -678,8 +678,8 @@ def test_a_cloth_side_hanging_edge_on_from_the_hand_is_kept_chained_from_its_hel
     edges, rest = grid_topology(6, 6, 0.06, 0.06)
     topo = Topology("2d", edges, rest, np.zeros(0, np.int64), np.zeros(0, np.int64), [], grid_shape=(6, 6))
     seeds = held_seeds(grid, topo, np.array([0, -1]))
-    assert seeds.shape == (1, 7) and np.allclose(seeds[0, :3], tcp)
-    assert np.isclose(seeds[0, 6], 0.6)  # the far corner, 10 edges of 6 cm away along the grid
+    assert seeds.shape == (1, 4) and np.allclose(seeds[0, :3], tcp)
+    assert np.isclose(seeds[0, 3], 0.6)  # the far corner, 10 edges of 6 cm away along the grid
     kept = select_clusters_near(pts, lab, grid, P, held=seeds)
     assert len(kept) == 605
     np.testing.assert_array_equal(kept[-5:], strip)

@@ -391,6 +391,26 @@ def tip_continuations(points: np.ndarray, tips: np.ndarray, reach_m: float, step
     return out
 
 
+def chained_to(points: np.ndarray, seeds: np.ndarray, step_m: float) -> np.ndarray:
+    """(N,) bool: points (N, 3) m chained to some seed in steps of at most step_m (m), in any direction, within the
+    seed's reach. seeds: (S, 4) m, each one's position (3,) and reach (``tracker.held_seeds``)."""
+    seeds = np.asarray(seeds, np.float64).reshape(-1, 4)
+    out = np.zeros(len(points), bool)
+    if not len(points) or not len(seeds):
+        return out
+    d = np.linalg.norm(points[:, None] - seeds[None, :, :3], axis=2)  # (N, S)
+    cand = np.flatnonzero((d <= seeds[None, :, 3]).any(axis=1))
+    if not len(cand) or d[cand].min() > step_m:  # nothing within a step of any seed
+        return out
+    S = len(seeds)
+    nodes = np.vstack([seeds[:, :3], points[cand]])  # nodes 0..S-1: the seeds
+    pairs = cKDTree(nodes).query_pairs(step_m, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])), shape=(len(nodes),) * 2)
+    comp = connected_components(graph, directed=False)[1]
+    out[cand[np.isin(comp[S:], comp[:S])]] = True
+    return out
+
+
 def select_clusters_near(
     points: np.ndarray, labels: np.ndarray, keypoints: np.ndarray, params: TrackingParams,
     support: tuple[np.ndarray, float] | None = None, samples: np.ndarray | None = None, flat: bool = True,
@@ -421,9 +441,9 @@ def select_clusters_near(
     tips: (T, 6) m the free tips of an object that cannot lie flat (``tracker.free_tips``): the left-out points
     that continue them are kept too (``tip_continuations`` with ``tip_reach_m``, ``tip_step_m``, ``tip_cone_cos``;
     those low above the table by colour, as above).
-    held: (H, 7) m a flat object's held corners (``tracker.held_seeds``: position, a zero direction, the sheet's
-    reach from it): with ``held_chain`` the left-out points chained to them in steps of at most ``tip_step_m``
-    within that reach are kept, in any direction (a side hanging edge-on from the hand)."""
+    held: (H, 4) m a flat object's held corners (``tracker.held_seeds``: position, the sheet's reach from it): with
+    ``held_chain`` the left-out points chained to them in steps of at most ``tip_step_m`` within that reach are
+    kept, in any direction (``chained_to``: a side hanging edge-on from the hand)."""
     ok = labels >= 0
     if len(keypoints) == 0 or len(points) == 0:
         return np.zeros((0, 3))
@@ -465,8 +485,7 @@ def select_clusters_near(
         cand = off_table(cand)
     if held is not None and len(held) and flat and params.held_chain:
         pool = np.flatnonzero(loose)
-        for t in np.asarray(held, np.float64).reshape(-1, 7):  # any direction: cosine -1
-            keep[pool[tip_continuations(points[pool], t[None, :6], float(t[6]), params.tip_step_m, -1.0)]] = True
+        keep[pool[chained_to(points[pool], held, params.tip_step_m)]] = True
     if tips is not None and len(tips) and not flat and params.tip_reach_m > 0:
         tips = np.asarray(tips, np.float64).reshape(-1, 6)
         pool = np.flatnonzero(loose)

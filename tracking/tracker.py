@@ -13,8 +13,6 @@ from enum import Enum
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import shortest_path
 from scipy.spatial import cKDTree
 
 from tracking.anchors import detect_anchors_1d, detect_anchors_2d
@@ -246,19 +244,22 @@ def free_tips(X: np.ndarray, edges: np.ndarray, grasp_idx: np.ndarray | None) ->
 
 
 def held_seeds(X: np.ndarray, topology: Topology, grasp_idx: np.ndarray | None) -> np.ndarray | None:
-    """(H, 7) float64: a grid's held keypoints of X (N, 3) m, each one's position (3,) m, a zero direction (3,) and
-    the reach (m) of the sheet from it, the longest path over the rest lengths (``segmentation.select_clusters_near``:
-    a side hanging edge-on from the hand lifts to points too sparse for DBSCAN); None for other objects."""
+    """(H, 4) float64: a grid's held keypoints of X (N, 3) m, each one's position (3,) m and the sheet's reach from
+    it (m), its longest row plus its longest column over the rest lengths (``segmentation.chained_to``: a side
+    hanging edge-on from the hand lifts to points too sparse for DBSCAN); None for other objects or none held."""
     if topology.grid_shape is None or grasp_idx is None:
         return None
     g = np.asarray(grasp_idx, np.int64).reshape(-1)
     g = g[(g >= 0) & (g < len(X))]
     if not len(g):
         return None
+    rows, cols = topology.grid_shape
     e = np.asarray(topology.edges, np.int64).reshape(-1, 2)
-    graph = coo_matrix((np.asarray(topology.rest, np.float64), (e[:, 0], e[:, 1])), shape=(len(X), len(X)))
-    reach = shortest_path(graph, directed=False, indices=g).max(axis=1)
-    return np.hstack([X[g], np.zeros((len(g), 3)), reach[:, None]]).astype(np.float64)
+    rest = np.asarray(topology.rest, np.float64)
+    along = (e[:, 0] // cols) == (e[:, 1] // cols)  # an edge within a row, else within a column
+    row = np.bincount(e[along, 0] // cols, rest[along], minlength=rows).max(initial=0.0)
+    col = np.bincount(e[~along, 0] % cols, rest[~along], minlength=cols).max(initial=0.0)
+    return np.hstack([X[g], np.full((len(g), 1), row + col)])
 
 
 def cloudless(topology: Topology, X: np.ndarray, cloud: np.ndarray | cKDTree, reach_m: float) -> np.ndarray:
