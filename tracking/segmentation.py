@@ -370,27 +370,6 @@ def _in_cones(points: np.ndarray, tips: np.ndarray, reach_m: float, cone_cos: fl
     return out
 
 
-def tip_continuations(points: np.ndarray, tips: np.ndarray, reach_m: float, step_m: float, cone_cos: float
-                      ) -> np.ndarray:
-    """(N,) bool: points (N, 3) m that continue a 1D object's free tips: within reach_m (m) of a tip, inside the
-    cone of cosine cone_cos around its outward direction, and chained to it in steps of at most step_m (m).
-
-    tips: (T, 6) m, each tip's position (3,) and unit outward direction (3,) (``tracker.free_tips``). A tube
-    pointing towards or away from the camera lifts to a few points one or two decimated pixels wide, too sparse
-    for DBSCAN; the cone keeps the table's noise and the rest of the object beside the tip out."""
-    out = np.zeros(len(points), bool)
-    for t in np.asarray(tips, np.float64).reshape(-1, 6):  # one or two tips an object
-        cone = np.flatnonzero(_in_cones(points, t[None], reach_m, cone_cos))
-        if len(cone) == 0:
-            continue
-        nodes = np.vstack([t[None, :3], points[cone]])  # node 0: the tip
-        pairs = cKDTree(nodes).query_pairs(step_m, output_type="ndarray")
-        graph = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])), shape=(len(nodes),) * 2)
-        comp = connected_components(graph, directed=False)[1]
-        out[cone[comp[1:] == comp[0]]] = True
-    return out
-
-
 def chained_to(points: np.ndarray, seeds: np.ndarray, step_m: float) -> np.ndarray:
     """(N,) bool: points (N, 3) m chained to some seed in steps of at most step_m (m), in any direction, within the
     seed's reach. seeds: (S, 4) m, each one's position (3,) and reach (``tracker.held_seeds``)."""
@@ -408,6 +387,21 @@ def chained_to(points: np.ndarray, seeds: np.ndarray, step_m: float) -> np.ndarr
     graph = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])), shape=(len(nodes),) * 2)
     comp = connected_components(graph, directed=False)[1]
     out[cand[np.isin(comp[S:], comp[:S])]] = True
+    return out
+
+
+def tip_continuations(points: np.ndarray, tips: np.ndarray, reach_m: float, step_m: float, cone_cos: float
+                      ) -> np.ndarray:
+    """(N,) bool: points (N, 3) m that continue a 1D object's free tips: within reach_m (m) of a tip, inside the
+    cone of cosine cone_cos around its outward direction, and chained to it in steps of at most step_m (m).
+
+    tips: (T, 6) m, each tip's position (3,) and unit outward direction (3,) (``tracker.free_tips``). A tube
+    pointing towards or away from the camera lifts to a few points one or two decimated pixels wide, too sparse
+    for DBSCAN; the cone keeps the table's noise and the rest of the object beside the tip out."""
+    out = np.zeros(len(points), bool)
+    for t in np.asarray(tips, np.float64).reshape(-1, 6):  # one or two tips an object
+        cone = np.flatnonzero(_in_cones(points, t[None], reach_m, cone_cos))
+        out[cone[chained_to(points[cone], np.append(t[:3], reach_m)[None], step_m)]] = True
     return out
 
 
