@@ -270,6 +270,24 @@ def test_support_plane_is_the_table(cam):
     assert support_plane(depth, K, T, strict) is None
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_support_plane_finds_a_far_table_whose_noise_is_wider_than_the_fixed_tolerance(seed):
+    """A table ~1.9 m away reads ~8 mm RMS: under a third of the image lies within ``attach_plane_tol_m`` of it
+    (a cabinet fills the rest), so the fixed tolerance alone finds no plane; the depth-noise one does."""
+    from tracking.segmentation import support_plane
+
+    w, h = 160, 120
+    K, T = S.intrinsics(w, h), look_at([0.0, -1.2, 1.5], [0.0, 0.0, 0.0])
+    cabinet = box_mesh((0.0, 0.1, 0.3), (0.55, 0.55, 0.3))
+    depth = S.render_depth([S.table_mesh(), cabinet], K, T, (h, w), noise_coeff=0.0022,
+                           rng=np.random.default_rng(seed))
+    assert support_plane(depth, K, T, TrackingParams(attach_plane_sigma_k=0.0)) is None
+    plane = support_plane(depth, K, T, P)
+    assert plane is not None
+    n, off = plane
+    assert n[2] > 0.999 and abs(off) < 3e-3
+
+
 def test_attached_growth_completes_an_unmoved_end_lying_on_the_table(cam):
     from tracking.segmentation import Segmentation, grow_attached_tubes, support_plane, voxel_downsample
 
