@@ -281,11 +281,30 @@ def test_support_plane_finds_a_far_table_whose_noise_is_wider_than_the_fixed_tol
     cabinet = box_mesh((0.0, 0.1, 0.3), (0.55, 0.55, 0.3))
     depth = S.render_depth([S.table_mesh(), cabinet], K, T, (h, w), noise_coeff=0.0022,
                            rng=np.random.default_rng(seed))
-    assert support_plane(depth, K, T, TrackingParams(attach_plane_sigma_k=0.0)) is None
+    assert support_plane(depth, K, T, TrackingParams(support_sigma_k=0.0)) is None
     plane = support_plane(depth, K, T, P)
     assert plane is not None
     n, off = plane
     assert n[2] > 0.999 and abs(off) < 3e-3
+
+
+def test_a_far_tables_noise_does_not_stand_above_it():
+    """~2 m from the camera the table's noise reaches past ``attach_min_height_m``: the height test's floor widens
+    with the depth noise, so few table pixels count as above it, while a box 3 cm tall still does."""
+    from tracking.segmentation import above_support, support_plane
+
+    w, h = 160, 120
+    K, T = S.intrinsics(w, h), look_at([0.0, -1.2, 1.5], [0.0, 0.0, 0.0])
+    box = box_mesh((0.0, 0.0, 0.015), (0.1, 0.1, 0.015))
+    rng = np.random.default_rng(3)
+    depth = S.render_depth([S.table_mesh(), box], K, T, (h, w), noise_coeff=0.0018, rng=rng)
+    on_box = S.render_depth([box], K, T, (h, w)) > 0
+    plane = support_plane(depth, K, T, P)
+    fixed = TrackingParams(support_sigma_k=0.0)
+    noisy = above_support(depth, K, T, plane, fixed)[~on_box].mean()
+    above = above_support(depth, K, T, plane, P)
+    assert noisy > 0.1 and above[~on_box].mean() < 0.5 * noisy
+    assert above[on_box].mean() > 0.9
 
 
 def test_attached_growth_completes_an_unmoved_end_lying_on_the_table(cam):

@@ -33,7 +33,8 @@ class TrackingParams:
         with the pixels within this reach of it, m, that belong to it though they did not move: those
         standing at least attach_min_height_m (m) above the table (the reference's dominant plane:
         attach_plane_min_fraction of its pixels within attach_plane_tol_m, m, or, where the depth noise
-        is wider, within attach_plane_sigma_k times it (a far table); without one, no
+        is wider, within support_sigma_k times it: a far table; the height, too, is at least that many
+        times the depth noise where it is wider than attach_min_height_m; without a plane, no
         height test) and reachable through depth steps of at most attach_step_m between
         neighbouring pixels, m; each added part must be thin (lateral spread at most
         attach_max_spread_m, m). attach_step_px: the step is at least this many pixel footprints (a
@@ -245,7 +246,7 @@ class TrackingParams:
     attach_step_px: float = 5.0
     attach_plane_tol_m: float = 0.004
     attach_plane_min_fraction: float = 0.3
-    attach_plane_sigma_k: float = 2.0
+    support_sigma_k: float = 2.0
     attach_min_height_m: float = 0.005
     track_attach_iterations: int = 10
     no_return_open_m: float = 0.02

@@ -409,7 +409,7 @@ def select_clusters_near(
     points: np.ndarray, labels: np.ndarray, keypoints: np.ndarray, params: TrackingParams,
     support: tuple[np.ndarray, float] | None = None, samples: np.ndarray | None = None, flat: bool = True,
     colour: Callable[[np.ndarray], np.ndarray] | None = None, tips: np.ndarray | None = None,
-    held: np.ndarray | None = None,
+    held: np.ndarray | None = None, cam: np.ndarray | None = None,
 ) -> np.ndarray:
     """Clusters with a point within ``track_gate_m`` of the previous keypoints (N, 3) -> (M, 3) float64, m.
 
@@ -418,9 +418,10 @@ def select_clusters_near(
     points DBSCAN left out (noise, clusters under ``min_cluster_points``) within ``track_attach_m`` of it are
     kept too: a tube steep to the image plane lifts to points several pixel footprints apart along it, too
     sparse for DBSCAN. Next to a covered part such points are the sensor's flying pixels, and stay out; so
-    do those less than ``attach_min_height_m`` above the ``support`` plane (normal (3,), offset m: the
-    table, whose noise an object lying on it would otherwise gather frame after frame). The points of the kept
-    clusters near the table (within ``attach_min_height_m`` of it either way) stay out too: the table's noise
+    do those less than ``table_floor`` above the ``support`` plane (normal (3,), offset m: the table, whose
+    noise an object lying on it would otherwise gather frame after frame; cam (3,) m world, the camera, for the
+    noise's depth; without it ``attach_min_height_m``). The points of the kept clusters near the table (within
+    that of it either way) stay out too: the table's noise
     (a shadow's, where stereo matching is poor) joins the cluster of a part hanging or lying above it and
     extends its tips, and a rope or branch lying there shows its top, a diameter above the table. An object
     that can lie ``flat`` on the table (a cloth, a millimetre or two thick) keeps those within
@@ -451,14 +452,16 @@ def select_clusters_near(
         keep[kk[~_near_points(points[kk], ref, params.track_gate_m)]] = False
     height = None if support is None else points @ support[0] - support[1]  # m above the table
     if height is not None:
-        low = np.flatnonzero(keep & (np.abs(height) < params.attach_min_height_m))
+        floor = (params.attach_min_height_m if cam is None
+                 else table_floor(np.linalg.norm(points - cam, axis=1), params))
+        low = np.flatnonzero(keep & (np.abs(height) < floor))
         if len(low) and flat:
             low = low[~_near(points[low], ref, params.track_attach_m)]
         keep[low] = False
     loose = ~keep
     loose[ok] &= ~big[labels[ok]]
     if height is not None:
-        loose &= height >= params.attach_min_height_m  # as points_above_support
+        loose &= height >= floor  # as points_above_support
     if params.track_attach_m <= 0 or not loose.any():
         return points[keep]
     attach = params.track_attach_m
@@ -526,7 +529,8 @@ def _cluster(
     if prev_keypoints is None:
         obj = select_largest_clusters(vox, labels, params)
     else:
-        obj = select_clusters_near(vox, labels, prev_keypoints, params, support, samples, flat, colour, tips, held)
+        obj = select_clusters_near(vox, labels, prev_keypoints, params, support, samples, flat, colour, tips, held,
+                                   T_world_cam[:3, 3])
     return Segmentation(obj, len(pts), n_clusters)
 
 
@@ -617,17 +621,29 @@ def grow_depth_region(
     return keep[lab]
 
 
-def points_above_support(points: np.ndarray, support: tuple[np.ndarray, float], min_height_m: float) -> np.ndarray:
-    """(N,) bool: points (N, 3) m world standing at least min_height_m above the support plane (unit normal (3,),
-    offset m, camera side positive: ``support_plane``); ``above_support`` is the same test on a depth image."""
-    return points @ support[0] - support[1] >= min_height_m
+def table_floor(z: np.ndarray, params: TrackingParams) -> np.ndarray:
+    """How high (m) above the table a point at depth z (any shape, m from the camera) must stand to be told from
+    it: ``attach_min_height_m``, or ``support_sigma_k`` times the depth noise (``diff_noise_coeff`` z**2) where
+    that is wider (a table ~2 m from a stereo camera reads ~8 mm RMS, and its noise stood 5 mm above it as a
+    branch's tip continuing to the table)."""
+    noise = np.float32(params.support_sigma_k * params.diff_noise_coeff) * z * z
+    return np.maximum(np.float32(params.attach_min_height_m), noise)
+
+
+def points_above_support(
+    points: np.ndarray, support: tuple[np.ndarray, float], params: TrackingParams, cam: np.ndarray
+) -> np.ndarray:
+    """(N,) bool: points (N, 3) m world standing at least ``table_floor`` above the support plane (unit normal
+    (3,), offset m, camera side positive: ``support_plane``), seen from the camera at cam (3,) m world;
+    ``above_support`` is the same test on a depth image."""
+    return points @ support[0] - support[1] >= table_floor(np.linalg.norm(points - cam, axis=1), params)
 
 
 def above_support(
     depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, support: tuple[np.ndarray, float] | None,
-    min_height_m: float,
+    params: TrackingParams,
 ) -> np.ndarray:
-    """(H, W) bool: pixels of depth (H, W) m whose 3D point stands at least min_height_m above the support
+    """(H, W) bool: pixels of depth (H, W) m whose 3D point stands at least ``table_floor`` above the support
     plane (unit normal (3,) world, offset m, camera side positive: ``support_plane``); all False without one."""
     if support is None:
         return np.zeros(depth.shape, bool)
@@ -637,7 +653,7 @@ def above_support(
     u = ((np.arange(W, dtype=np.float32) - np.float32(K[0, 2])) / np.float32(K[0, 0])) * np.float32(a[0])
     v = ((np.arange(H, dtype=np.float32) - np.float32(K[1, 2])) / np.float32(K[1, 1])) * np.float32(a[1])
     height = depth * (v[:, None] + u[None, :] + np.float32(a[2])) + np.float32(T_world_cam[:3, 3] @ n - o)
-    return (depth > 0) & (height >= np.float32(min_height_m))
+    return (depth > 0) & (height >= table_floor(depth, params))
 
 
 def _grow_thin(z: np.ndarray, seeds: np.ndarray, cand: np.ndarray, step: np.float32) -> np.ndarray:
@@ -708,7 +724,7 @@ def segment_by_difference(
     if not grow or params.grow_step_m <= 0 or len(seg.points) == 0:
         return seg
     seeds = pixel_mask(seg.points, K, T_world_cam, depth1.shape)[0] & appeared
-    candidate = appeared | vanished | above_support(depth1, K, T_world_cam, support, params.attach_min_height_m)
+    candidate = appeared | vanished | above_support(depth1, K, T_world_cam, support, params)
     if arm_mask is not None:
         candidate &= ~arm_mask
     grown = grow_depth_region(depth1, seeds, candidate, params.grow_step_m)
@@ -723,7 +739,7 @@ def support_plane(
 
     Returns (unit normal (3,) world, offset m) with x @ normal = offset on the plane and the camera
     on its positive side, or None when under ``attach_plane_min_fraction`` of the sampled pixels lie
-    within ``attach_plane_tol_m`` of the best plane, nor within ``attach_plane_sigma_k`` times their
+    within ``attach_plane_tol_m`` of the best plane, nor within ``support_sigma_k`` times their
     depth noise (``diff_noise_coeff`` z**2) where that is wider: a table ~1.9 m from a stereo camera
     reads ~4-6 mm RMS, and under a third of the image then lies within 4 mm of it. Sampling is seeded
     (``params.seed``).
@@ -744,7 +760,7 @@ def support_plane(
     off = np.einsum("hi,hi->h", nrm, tri[good, 0])
     res = np.abs(P @ nrm.T - off)  # (N, hypotheses) m
     z = depth[px[pick, 0], px[pick, 1]].astype(np.float64)
-    noise = params.attach_plane_sigma_k * params.diff_noise_coeff * z * z
+    noise = params.support_sigma_k * params.diff_noise_coeff * z * z
     for tol in (params.attach_plane_tol_m, np.maximum(params.attach_plane_tol_m, noise)[:, None]):
         score = (res <= tol).sum(axis=0)  # (hypotheses,)
         best = int(np.argmax(score))
@@ -824,7 +840,7 @@ def grow_attached_tubes(
     d, _ = tree.query(zp, distance_upper_bound=reach)
     ok = np.isfinite(d)
     if support is not None:
-        ok &= points_above_support(zp, support, params.attach_min_height_m)
+        ok &= points_above_support(zp, support, params, T_world_cam[:3, 3])
     zpix = zpix[ok]
     if len(zpix) == 0:
         return seg
@@ -948,7 +964,7 @@ def refine_object_cloud(
     if refs is not None and params.grow_step_m > 0 and len(pts):
         seeds = np.zeros((H, W), bool)
         seeds[pix[near, 0], pix[near, 1]] = True
-        above = above_support(depth, K, T_world_cam, support, params.attach_min_height_m) if support else None
+        above = above_support(depth, K, T_world_cam, support, params) if support else None
         extra, _ = depth_to_points(depth, K, T_world_cam, _regrow(depth, seeds, refs, valid, params, above) & ~seeds)
         pts = np.concatenate([pts, extra])
     if not len(pts):
@@ -1046,7 +1062,7 @@ def behind_continuing(
     if arm_mask is not None:
         ok &= ~arm_mask
     if support is not None:
-        ok &= above_support(depth, K, T_world_cam, support, params.attach_min_height_m)
+        ok &= above_support(depth, K, T_world_cam, support, params)
     behind = ok & (depth - background > thr)
     if not behind.any():
         return behind
