@@ -240,3 +240,26 @@ def test_retrack_grown_tracks_the_frames_up_to_a_growth_again_and_keeps_the_bett
         np.testing.assert_allclose(keypoints[i], want)  # type: ignore[arg-type]
     assert all(g is not None for g in grasp)
     assert set(res.quality) == ({0, 1, 2, 3, 4} if taken else {0, 1})
+
+
+def test_a_ropes_size_for_initialisation_does_not_fall_with_its_distance() -> None:
+    """``LivePipeline.voxels_worth``: the same rope 1, 1.5 and 2 m from a 1280x720 camera lifts to ever fewer points
+    (its pixels widen past a voxel), but to the same surface, which ``min_init_points`` is judged against."""
+    from tdcommon.meshes import tube_mesh
+    from tdcommon.transforms import look_at
+    from tracking.geometry import depth_to_points
+    from tracking.segmentation import voxel_downsample
+
+    K = S.intrinsics(1280, 720)
+    c = S.rope_centreline(0.0, radius=0.0045)
+    counts, worth = [], []
+    for dist in (1.0, 1.5, 2.0):
+        T = look_at([0.0, -0.6 * dist, 0.8 * dist], [0.0, 0.0, 0.0])
+        pipe = LivePipeline(P, K, T, "1d")
+        depth = pipe.decimate(S.render_depth([tube_mesh(c, 0.0045)], K, T, (720, 1280)))
+        pts = voxel_downsample(depth_to_points(depth, pipe.K_seg, T)[0], P.voxel_m)
+        counts.append(len(pts))
+        worth.append(pipe.voxels_worth(pts))
+    assert counts[0] > 3 * counts[2]
+    assert max(worth) < 1.15 * min(worth) and min(worth) >= counts[0]
+    assert LivePipeline(P, K, look_at([0.0, -0.6, 0.8], [0.0, 0.0, 0.0]), "1d").voxels_worth(np.zeros((0, 3))) == 0
