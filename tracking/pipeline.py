@@ -62,7 +62,7 @@ class PipelineOutput:
     keypoints: (N, 3) float64 m world (raw), smoothed: (N, 3) causal moving average; empty before init.
     grasp_idx: (G,) int64 keypoint held by each gripper (-1: none). abs_mm / cd_mm: the paper's per-frame
     edge-length RMSE and keypoint-to-cloud distance (nan before init). n_points: segmented cloud size (voxels;
-    while waiting to initialise, the difference cloud's ``voxels_worth``).
+    while waiting to initialise a 1D or unknown object, the difference cloud's ``voxels_worth``).
     timings_ms: wall time of this frame's stages, ms: "arm" (arm mask render), "segment"
     (differencing or background segmentation + DBSCAN), "init" (classification, anchors, warm start,
     solve) on an initialisation frame, "anchors" (re-detection) and "solve" (Algorithm 1 + scoring)
@@ -134,8 +134,8 @@ class LivePipeline:
     ) -> None:
         """kind: "1d"/"2d" when the object's category is known (else classified from the cloud).
 
-        min_init_points: a difference segmentation smaller than this (voxels' worth of surface: ``voxels_worth``)
-          waits for more motion.
+        min_init_points: a difference segmentation smaller than this (voxels; of a 1D or unknown object, voxels'
+          worth of surface: ``voxels_worth``) waits for more motion.
         reference_gap: frames between the extra difference references kept from the recent past.
         init_stable_frames, init_max_growth: initialise only once the difference segmentation has
           grown by at most this fraction over this many frames (it is still uncovering the object
@@ -474,7 +474,10 @@ class LivePipeline:
         t1 = time.perf_counter()
         self._timings["segment"] = 1e3 * (t1 - t0)
         self._remember(depth, colour)
-        n = self.voxels_worth(seg.points)
+        # a sheet's moving part is never thin: its count early in its motion is what min_init_points was set for
+        # (counted as surface, 35 of 87 test-bed cloths initialised 1-26 frames earlier, on a sheet still to move:
+        # cloth_fast_c403's anchors 33 -> 92 mm, cloth_slow_g426's 10 -> 105)
+        n = len(seg.points) if self.kind == "2d" else self.voxels_worth(seg.points)
         if self._growing(len(seg.points)) or n < self.min_init_points:
             return self._empty("waiting", n, "waiting for the arms to move the object")
         seg, cloud = self.initial_cloud(refs, depth, seg, arm, tcp, closed, full)
