@@ -527,6 +527,18 @@ VARIANTS: list[dict[str, Any]] = [
          camera=[1.15, -0.95, 1.35, 0.45, -0.45, 0.2], branch_len=0.24, radius=0.0064, rgb=[0.6, 0.3, 0.8]),
     dict(name="cloth_medium_d416", obj="cloth", speed="medium", seconds=5, seed=416,
          camera=[1.4, -0.05, 1.6, 0.45, -0.45, 0.15], rgb=[0.9, 0.9, 0.9]),
+    dict(name="rope_medium_g421", obj="rope", speed="medium", seconds=5, seed=421,
+         camera=[1.55, 0.2, 1.55, 0.45, -0.45, 0.15], length=0.87, radius=0.0052, rgb=[0.9, 0.3, 0.2]),
+    dict(name="bdlo_medium_g422", obj="bdlo", speed="medium", seconds=5, seed=422,
+         camera=[1.5, -0.2, 1.7, 0.45, -0.45, 0.15], branch_len=0.28, radius=0.0061, rgb=[0.2, 0.7, 0.8]),
+    dict(name="cloth_medium_g423", obj="cloth", speed="medium", seconds=5, seed=423,
+         camera=[1.65, -0.7, 1.6, 0.45, -0.45, 0.15], rgb=[0.8, 0.6, 0.2]),
+    dict(name="cloth_fast_g424", obj="cloth", speed="fast", seconds=5, seed=424,
+         camera=[1.2, 0.35, 1.7, 0.45, -0.45, 0.15], rgb=[0.3, 0.4, 0.9]),
+    dict(name="rope_fast_g425", obj="rope", speed="fast", seconds=5, seed=425,
+         camera=[1.75, -0.35, 1.4, 0.45, -0.45, 0.15], length=0.95, radius=0.0044, rgb=[0.3, 0.8, 0.3]),
+    dict(name="cloth_slow_g426", obj="cloth", speed="slow", seconds=5, seed=426,
+         camera=[1.3, -1.1, 1.65, 0.45, -0.45, 0.15], rgb=[0.9, 0.4, 0.6]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
