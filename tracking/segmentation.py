@@ -760,11 +760,10 @@ def support_plane(
     off = np.einsum("hi,hi->h", nrm, tri[good, 0])
     res = np.abs(P @ nrm.T - off)  # (N, hypotheses) m
     z = depth[px[pick, 0], px[pick, 1]].astype(np.float64)
-    noise = params.support_sigma_k * params.diff_noise_coeff * z * z
-    for tol in (params.attach_plane_tol_m, np.maximum(params.attach_plane_tol_m, noise)[:, None]):
-        score = (res <= tol).sum(axis=0)  # (hypotheses,)
-        best = int(np.argmax(score))
-        inl = res[:, best] <= (tol if np.ndim(tol) == 0 else tol[:, 0])
+    fixed = np.full(len(P), params.attach_plane_tol_m)
+    for tol in (fixed, np.maximum(fixed, params.support_sigma_k * params.diff_noise_coeff * z * z)):
+        inside = res <= tol[:, None]  # (N, hypotheses)
+        inl = inside[:, int(np.argmax(inside.sum(axis=0)))]
         if inl.mean() >= params.attach_plane_min_fraction:
             break
     else:
