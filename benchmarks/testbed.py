@@ -539,6 +539,12 @@ VARIANTS: list[dict[str, Any]] = [
          camera=[1.75, -0.35, 1.4, 0.45, -0.45, 0.15], length=0.95, radius=0.0044, rgb=[0.3, 0.8, 0.3]),
     dict(name="cloth_slow_g426", obj="cloth", speed="slow", seconds=5, seed=426,
          camera=[1.3, -1.1, 1.65, 0.45, -0.45, 0.15], rgb=[0.9, 0.4, 0.6]),
+    dict(name="rope_slow_g431", obj="rope", speed="slow", seconds=5, seed=431,
+         camera=[1.7, -0.9, 1.5, 0.45, -0.45, 0.15], length=1.0, radius=0.004, rgb=[0.95, 0.6, 0.1]),
+    dict(name="rope_medium_g433", obj="rope", speed="medium", seconds=5, seed=433,
+         camera=[0.9, -0.5, 2.0, 0.45, -0.45, 0.15], length=0.82, radius=0.0068, rgb=[0.2, 0.3, 0.9]),
+    dict(name="bdlo_slow_g434", obj="bdlo", speed="slow", seconds=5, seed=434,
+         camera=[1.8, -0.15, 1.35, 0.45, -0.45, 0.15], branch_len=0.3, radius=0.0055, rgb=[0.9, 0.9, 0.3]),
 ]
 SETS = {"dev": DEV, "variants": VARIANTS, "all": DEV + VARIANTS}
 CATEGORY = {"rope": "dlo", "bdlo": "bdlo", "cloth": "cloth"}
