@@ -50,10 +50,16 @@ def valid_depth(depth: np.ndarray, params: TrackingParams) -> np.ndarray:
     return (depth >= params.depth_min_m) & (depth <= params.depth_max_m)
 
 
+def depth_noise(z: np.ndarray, params: TrackingParams, k: float = 1.0) -> np.ndarray:
+    """k times the depth sensor's noise sigma(z) = ``diff_noise_coeff`` z**2 (m) at depths z (any shape, m), in z's
+    float dtype: the one noise model the change threshold, the table's plane and its height test share."""
+    z = np.asarray(z)
+    return np.asarray(k * params.diff_noise_coeff, z.dtype) * z * z
+
+
 def change_threshold(depth: np.ndarray, params: TrackingParams) -> np.ndarray:
     """(H, W) float32 noise-aware change threshold (m) at reference depth ``depth`` (m)."""
-    sigma = np.float32(params.diff_noise_coeff) * depth * depth
-    return np.maximum(np.float32(params.diff_abs_m), np.float32(params.diff_sigma_k) * sigma)
+    return np.maximum(np.float32(params.diff_abs_m), np.float32(params.diff_sigma_k) * depth_noise(depth, params))
 
 
 def _rays_needed(
@@ -626,8 +632,7 @@ def table_floor(z: np.ndarray, params: TrackingParams) -> np.ndarray:
     it: ``attach_min_height_m``, or ``support_sigma_k`` times the depth noise (``diff_noise_coeff`` z**2) where
     that is wider (a table ~2 m from a stereo camera reads ~8 mm RMS, and its noise stood 5 mm above it as a
     branch's tip continuing to the table)."""
-    noise = np.float32(params.support_sigma_k * params.diff_noise_coeff) * z * z
-    return np.maximum(np.float32(params.attach_min_height_m), noise)
+    return np.maximum(np.float32(params.attach_min_height_m), depth_noise(z, params, params.support_sigma_k))
 
 
 def points_above_support(
@@ -761,7 +766,7 @@ def support_plane(
     res = np.abs(P @ nrm.T - off)  # (N, hypotheses) m
     z = depth[px[pick, 0], px[pick, 1]].astype(np.float64)
     fixed = np.full(len(P), params.attach_plane_tol_m)
-    for tol in (fixed, np.maximum(fixed, params.support_sigma_k * params.diff_noise_coeff * z * z)):
+    for tol in (fixed, np.maximum(fixed, depth_noise(z, params, params.support_sigma_k))):
         inside = res <= tol[:, None]  # (N, hypotheses)
         inl = inside[:, int(np.argmax(inside.sum(axis=0)))]
         if inl.mean() >= params.attach_plane_min_fraction:
